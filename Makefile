@@ -1,0 +1,44 @@
+# densityloop: `make help` lists the targets.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.DEFAULT_GOAL := help
+.PHONY: help install test test-slow lint format bench reproduce clean
+
+help: ## List the targets
+	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-12s %s\n", $$1, $$2}'
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP) ## Create .venv and install the project with its dev tools
+
+test: $(STAMP) ## Run the test suite (excludes tests marked slow)
+	$(PY) -m pytest
+
+test-slow: $(STAMP) ## Run only the slow tests
+	$(PY) -m pytest -m slow
+
+lint: $(STAMP) ## Check style with ruff
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+format: $(STAMP) ## Format the code with ruff
+	$(PY) -m ruff format .
+	$(PY) -m ruff check --fix .
+
+bench: $(STAMP) ## Speed benchmarks, each figure next to its target
+	$(PY) -m benchmarks.run
+
+reproduce: $(STAMP) ## Run the paper's experiment and write its figures to figures/
+	$(PY) -m experiments.meanfield_convergence
+	@echo "figures written to: $$(ls -1 figures/* | tr '\n' ' ')"
+
+clean: ## Remove outputs and figures (keeps .venv)
+	rm -rf outputs multirun figures .pytest_cache .ruff_cache

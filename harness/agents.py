@@ -1,0 +1,133 @@
+"""Robots: Euler-Maruyama for the Langevin equation with reflecting walls.
+
+Each robot follows (eq. ``Langevin equation``)
+
+    dX = v(X, t) dt + sqrt(2 sigma) dB,
+
+integrated with the Euler-Maruyama step
+
+    X_{n+1} = R( X_n + v(X_n, t_n) dt + sqrt(2 sigma dt) xi_n ),   xi_n ~ N(0, I_2),
+
+where ``v(X_n)`` is the bilinear interpolant of the cell-centre velocities (the
+value of the nearest centre row/column beyond the outermost centres) and ``R``
+reflects a coordinate that left the interval ``[lo, hi]`` back across the wall,
+``x -> 2 lo - x`` or ``x -> 2 hi - x`` (exact for the reflected Brownian motion's
+law when one step crosses at most one wall; a final clip guards against steps
+longer than the domain). Positions are stored as an array of shape ``(2, N)``
+(row 0: x, row 1: y), in length units. All randomness comes from the
+``numpy.random.Generator`` passed in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from harness.grid import Grid
+from harness.kernels import euler_maruyama_step
+from harness.velocity import VelocityField
+
+
+def interpolate(grid: Grid, centres: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of a cell-centred vector field at positions.
+
+    Args:
+        grid: The grid.
+        centres: Field of shape ``(c, ny, nx)``.
+        positions: Points of shape ``(2, N)`` inside the domain.
+
+    Returns:
+        Values of shape ``(c, N)``. Beyond the outermost cell centres (within half
+        a cell of a wall) the field is extended by its nearest centre values.
+    """
+    c = centres.shape[0]
+    u = np.clip((positions[0] - grid.x0) / grid.dx - 0.5, 0.0, grid.nx - 1)
+    w = np.clip((positions[1] - grid.y0) / grid.dy - 0.5, 0.0, grid.ny - 1)
+    i0 = np.minimum(u.astype(np.intp), grid.nx - 2)
+    j0 = np.minimum(w.astype(np.intp), grid.ny - 2)
+    fx = u - i0
+    fy = w - j0
+    base = j0 * grid.nx + i0
+    flat = centres.reshape(c, -1)
+    v00 = flat[:, base]
+    v10 = flat[:, base + 1]
+    v01 = flat[:, base + grid.nx]
+    v11 = flat[:, base + grid.nx + 1]
+    return (v00 + fx * (v10 - v00)) * (1 - fy) + (v01 + fx * (v11 - v01)) * fy
+
+
+def reflect(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Reflect coordinates across the walls ``lo`` and ``hi`` in place, then clip."""
+    np.copyto(x, 2.0 * lo - x, where=x < lo)
+    np.copyto(x, 2.0 * hi - x, where=x > hi)
+    np.clip(x, lo, hi, out=x)
+    return x
+
+
+@dataclass
+class Swarm:
+    """``N`` robots in the grid's rectangle.
+
+    Args:
+        grid: Grid giving the domain and the velocity field's layout.
+        positions: Initial positions, shape ``(2, N)``, inside the domain.
+        sigma: Noise intensity ``sigma >= 0`` (length^2 / time).
+    """
+
+    grid: Grid
+    positions: np.ndarray
+    sigma: float
+    _noise: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.positions = np.array(self.positions, dtype=float)
+        if self.positions.ndim != 2 or self.positions.shape[0] != 2 or self.positions.shape[1] < 1:
+            raise ValueError(f"positions must have shape (2, N) with N >= 1, got {self.positions.shape}")
+        if not self.grid.contains(self.positions[0], self.positions[1]).all():
+            raise ValueError("initial positions must lie inside the domain")
+        if not (np.isfinite(self.sigma) and self.sigma >= 0):
+            raise ValueError(f"sigma must be finite and >= 0, got {self.sigma}")
+        self._noise = np.empty_like(self.positions)
+
+    @property
+    def n(self) -> int:
+        """Number of robots ``N``."""
+        return self.positions.shape[1]
+
+    def step(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
+        """Advance every robot by one Euler-Maruyama step of length ``dt`` under
+        ``v`` (eq. ``Langevin equation``) and return the new positions.
+
+        The Gaussian increments come from ``rng``; the interpolation, update and
+        reflection run in one compiled pass (:func:`harness.kernels.euler_maruyama_step`),
+        which :meth:`step_reference` states in plain numpy.
+        """
+        g = self.grid
+        rng.standard_normal(out=self._noise)
+        self._noise *= np.sqrt(2.0 * self.sigma * dt)
+        centres = np.ascontiguousarray(v.centres, dtype=float)
+        euler_maruyama_step(
+            self.positions, centres, self._noise, float(dt), g.x0, g.x1, g.y0, g.y1, g.nx, g.ny
+        )
+        return self.positions
+
+    def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
+        """Plain-numpy statement of :meth:`step` (same random draws, same result)."""
+        g = self.grid
+        rng.standard_normal(out=self._noise)
+        self._noise *= np.sqrt(2.0 * self.sigma * dt)
+        drift = interpolate(g, v.centres, self.positions)
+        self.positions += drift * dt + self._noise
+        reflect(self.positions[0], g.x0, g.x1)
+        reflect(self.positions[1], g.y0, g.y1)
+        return self.positions
+
+    def histogram(self) -> np.ndarray:
+        """Empirical density on the grid: robots per cell / (N cell area),
+        shape ``(ny, nx)``, grid integral 1 (1 / length^2)."""
+        g = self.grid
+        h, _, _ = np.histogram2d(
+            self.positions[1], self.positions[0], bins=(g.ny, g.nx), range=((g.y0, g.y1), (g.x0, g.x1))
+        )
+        return h / (self.n * g.cell_area)

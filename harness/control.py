@@ -1,0 +1,94 @@
+"""Density feedback laws: estimates in, velocity field on the grid out.
+
+Both laws take the density estimate ``p_hat`` (``(ny, nx)``, 1 / length^2), the
+gradient estimate ``q_hat`` (``(2, ny, nx)``, 1 / length^3), the target (``p_*``,
+``grad p_*`` and ``log p_*`` on the grid, see :class:`harness.densities.Target`),
+the gain ``alpha >= 0`` (length^4 / time, so that ``alpha grad(p / p_*)`` is a
+velocity) and the noise intensity ``sigma >= 0`` (length^2 / time), and return a
+:class:`~harness.velocity.VelocityField` (length / time).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from harness.densities import Target
+from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
+
+
+def _check_gains(alpha: float, sigma: float) -> None:
+    if not (np.isfinite(alpha) and alpha >= 0):
+        raise ValueError(f"control.alpha must be finite and >= 0, got {alpha}")
+    if not (np.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"dynamics.sigma must be finite and >= 0, got {sigma}")
+
+
+def paper_law(
+    p_hat: np.ndarray, q_hat: np.ndarray, target: Target, alpha: float, sigma: float
+) -> VelocityField:
+    """The paper's law with estimates (eq. ``modified density feedback law using
+    estimates``):
+
+        v = -alpha (p_* q_hat - p_hat grad p_*) / p_*^2 + sigma grad p_* / p_*.
+
+    With exact estimates it equals eq. ``modified density feedback law 1``,
+    ``v = -alpha grad(p / p_*) + sigma grad p_* / p_*``, and the closed loop is
+    ``d_t p = div((alpha p + sigma p_*) grad(p / p_*))``. ``p_hat`` never appears in
+    a denominator.
+
+    Discretisation. Cell centres take the formula above. On the faces, the
+    feedback term is the mean of its two neighbouring centre values, and the
+    drift ``sigma grad p_* / p_* = sigma grad log p_*`` is the face difference
+    ``sigma (log p*_R - log p*_L) / h``. With the Scharfetter-Gummel fluxes of
+    :mod:`harness.fokker_planck` this makes ``p_*`` an exact discrete steady state
+    for ``alpha = 0``, and for every ``alpha`` when ``p_hat = p_*`` and ``q_hat``
+    is the grid gradient of ``p_*``.
+    """
+    _check_gains(alpha, sigma)
+    g = target.grid
+    feedback = -alpha * (target.p * q_hat - p_hat * target.grad) / target.p**2
+    drift = sigma * target.grad / target.p
+    centres = feedback + drift
+    face_x = centres_to_face_x(feedback[0]) + sigma * np.diff(target.log_p, axis=1) / g.dx
+    face_y = centres_to_face_y(feedback[1]) + sigma * np.diff(target.log_p, axis=0) / g.dy
+    return VelocityField(centres, face_x, face_y)
+
+
+def heat_law(
+    p_hat: np.ndarray,
+    q_hat: np.ndarray,
+    target: Target,
+    alpha: float,
+    sigma: float,
+    density_floor: float = 0.1,
+    noise_compensation: bool = True,
+) -> VelocityField:
+    """The prior heat-equation law, estimate in the denominator (the paper's
+    remark after eq. ``modified density feedback law 1`` contrasts it):
+
+        v = -alpha (q_hat - grad p_*) / max(p_hat, c)  -  sigma q_hat / max(p_hat, c).
+
+    With exact estimates and ``p >= c`` the closed loop is the heat equation
+    ``d_t p = alpha Laplacian(p - p_*)``. The second term cancels the robots'
+    diffusion ``sigma Laplacian(p)``; without it (``noise_compensation=False``,
+    the law as usually written for noise-free robots) the loop settles at
+    ``(alpha p_* + sigma c') / (alpha + sigma)`` rather than at ``p_*``.
+
+    Args:
+        density_floor: ``c > 0`` (1 / length^2), the floor that keeps the
+            denominator away from zero where ``p_hat`` is small or negative. The
+            default 0.1 is a tenth of the uniform density on the unit square.
+        noise_compensation: Include the ``-sigma q_hat / p_hat`` term.
+    """
+    _check_gains(alpha, sigma)
+    if not density_floor > 0:
+        raise ValueError(f"heat law density_floor must be > 0, got {density_floor}")
+    denom = np.maximum(p_hat, density_floor)
+    centres = -alpha * (q_hat - target.grad) / denom
+    if noise_compensation:
+        centres = centres - sigma * q_hat / denom
+    return VelocityField.from_centres(centres)
+
+
+LAWS = {"paper": paper_law, "heat": heat_law}
+"""Control laws by config name."""

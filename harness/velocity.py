@@ -1,0 +1,82 @@
+"""Velocity fields on the grid: cell-centre values and face-normal values.
+
+The control laws produce a velocity field ``v(x, t)``. Two views of it are used:
+
+* ``centres``, shape ``(2, ny, nx)``: ``v`` at the cell centres. The robots
+  interpolate it bilinearly and the logs record it.
+* ``face_x``, shape ``(ny, nx - 1)``, and ``face_y``, shape ``(ny - 1, nx)``: the
+  normal component on the interior faces (``face_x[j, i]`` sits between cells
+  ``(j, i)`` and ``(j, i + 1)``). The finite-volume Fokker-Planck operator moves
+  mass with these. Wall faces carry no flux (reflecting walls) and are not stored.
+
+By default the face values are averages of the two neighbouring centres; a
+control law may instead evaluate a term directly on the faces (the paper's law
+does so for its drift ``sigma grad p_* / p_*``, which is what makes ``p_*`` an
+exact discrete steady state). Velocities are in length per time unit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from harness.grid import Grid
+
+
+@dataclass(frozen=True)
+class VelocityField:
+    """A velocity field on a :class:`~harness.grid.Grid` (length / time)."""
+
+    centres: np.ndarray
+    face_x: np.ndarray
+    face_y: np.ndarray
+
+    def __post_init__(self) -> None:
+        _, ny, nx = self.centres.shape
+        if self.centres.shape[0] != 2:
+            raise ValueError(f"centres must have shape (2, ny, nx), got {self.centres.shape}")
+        if self.face_x.shape != (ny, nx - 1) or self.face_y.shape != (ny - 1, nx):
+            raise ValueError(
+                f"face arrays {self.face_x.shape}, {self.face_y.shape} do not match "
+                f"centres {self.centres.shape}"
+            )
+
+    @classmethod
+    def from_centres(cls, centres: np.ndarray) -> VelocityField:
+        """Face values as the mean of the two neighbouring cell centres."""
+        centres = np.asarray(centres, dtype=float)
+        return cls(centres, centres_to_face_x(centres[0]), centres_to_face_y(centres[1]))
+
+    @classmethod
+    def zeros(cls, grid: Grid) -> VelocityField:
+        """The zero field."""
+        return cls.from_centres(np.zeros((2, *grid.shape)))
+
+    def max_speed(self) -> float:
+        """Largest speed over centres and faces (length / time)."""
+        return float(
+            max(
+                np.max(np.hypot(self.centres[0], self.centres[1])),
+                np.max(np.abs(self.face_x), initial=0.0),
+                np.max(np.abs(self.face_y), initial=0.0),
+            )
+        )
+
+    def is_finite(self) -> bool:
+        """True when every stored value is finite."""
+        return bool(
+            np.isfinite(self.centres).all()
+            and np.isfinite(self.face_x).all()
+            and np.isfinite(self.face_y).all()
+        )
+
+
+def centres_to_face_x(f: np.ndarray) -> np.ndarray:
+    """Average of a cell field onto the interior x-faces, ``(ny, nx - 1)``."""
+    return 0.5 * (f[:, 1:] + f[:, :-1])
+
+
+def centres_to_face_y(f: np.ndarray) -> np.ndarray:
+    """Average of a cell field onto the interior y-faces, ``(ny - 1, nx)``."""
+    return 0.5 * (f[1:, :] + f[:-1, :])
