@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from harness.densities import Target
+from harness.grid import Grid
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
 
 
@@ -88,6 +89,38 @@ def heat_law(
     if noise_compensation:
         centres = centres - sigma * q_hat / denom
     return VelocityField.from_centres(centres)
+
+
+def sampled_data_dt_bound(grid: Grid, alpha: float, ratio: float) -> float:
+    """Largest ``dt`` for which the held feedback term does not overshoot at grid scale.
+
+    The control is computed once per step and held for ``dt`` (sampled data). With
+    exact estimates the feedback term of the paper's law acts as the nonlinear
+    diffusion ``div(alpha p grad(p / p_*))``, of local diffusivity ``alpha p / p_*``.
+    Held over ``dt``, a grid-scale mode of the discrete Laplacian (eigenvalue up to
+    ``lambda_max = 4/dx^2 + 4/dy^2``) is multiplied by ``1 - dt alpha r lambda_max``
+    with ``r = max p / p_*``, which leaves ``[-1, 1]`` when
+
+        dt > 2 / (alpha r lambda_max).
+
+    The bound concerns the physical sampled-data loop, not the Fokker-Planck
+    stepper (which is implicit and stable for every ``dt``): the robots receive
+    the same held velocity. Estimates smoothed by a KDE of bandwidth ``h`` carry
+    little grid-scale content, so in practice the loop tolerates more.
+
+    Args:
+        grid: The grid.
+        alpha: Feedback gain (length^4 / time).
+        ratio: ``r = max p / p_*`` over the run (dimensionless; initially
+            ``max p_0 / min p_*``).
+
+    Returns:
+        The bound in time units (``inf`` when ``alpha = 0``).
+    """
+    lam_max = 4.0 / grid.dx**2 + 4.0 / grid.dy**2
+    if alpha <= 0 or ratio <= 0:
+        return float("inf")
+    return 2.0 / (alpha * ratio * lam_max)
 
 
 LAWS = {"paper": paper_law, "heat": heat_law}

@@ -213,6 +213,8 @@ class FokkerPlanck:
             raise ValueError(f"dt must be > 0, got {dt}")
         if not v.is_finite():
             raise NumericalError("velocity field has non-finite values")
+        if not np.isfinite(p).all():
+            raise NumericalError("density has non-finite values before the step")
         a = self.matrix(v)
         rho = dt * 2.0 * float(np.max(np.abs(a.diagonal()), initial=0.0))
         flat = p.ravel().astype(float)
