@@ -60,8 +60,10 @@ def main(cfg: DictConfig) -> None:
     rate = (cfg.control.alpha + cfg.dynamics.sigma) * lam
     out = Path(to_absolute_path(cfg.figures_dir))
     paths = plot_meanfield_convergence(result, grid, target, init.on_grid(grid), rate, out)
-    print(f"Poincare constant lambda = {lam:.4f} 1/length^2; theoretical rate "
-          f"(alpha + sigma) lambda = {rate:.4g} 1/s")
+    print(
+        f"Poincare constant lambda = {lam:.4f} 1/length^2; theoretical rate "
+        f"(alpha + sigma) lambda = {rate:.4g} 1/s"
+    )
     print(f"final ||p - p*|| = {result.phi_l2[-1]:.4e} 1/length at t = {result.t[-1]:.1f} s")
     for p in paths:
         print(f"wrote {p}")

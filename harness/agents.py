@@ -83,7 +83,9 @@ class Swarm:
     def __post_init__(self) -> None:
         self.positions = np.array(self.positions, dtype=float)
         if self.positions.ndim != 2 or self.positions.shape[0] != 2 or self.positions.shape[1] < 1:
-            raise ValueError(f"positions must have shape (2, N) with N >= 1, got {self.positions.shape}")
+            raise ValueError(
+                f"positions must have shape (2, N) with N >= 1, got {self.positions.shape}"
+            )
         if not self.grid.contains(self.positions[0], self.positions[1]).all():
             raise ValueError("initial positions must lie inside the domain")
         if not (np.isfinite(self.sigma) and self.sigma >= 0):
@@ -125,9 +127,13 @@ class Swarm:
 
     def histogram(self) -> np.ndarray:
         """Empirical density on the grid: robots per cell / (N cell area),
-        shape ``(ny, nx)``, grid integral 1 (1 / length^2)."""
+        shape ``(ny, nx)``, grid integral 1 (1 / length^2).
+        """
         g = self.grid
         h, _, _ = np.histogram2d(
-            self.positions[1], self.positions[0], bins=(g.ny, g.nx), range=((g.y0, g.y1), (g.x0, g.x1))
+            self.positions[1],
+            self.positions[0],
+            bins=(g.ny, g.nx),
+            range=((g.y0, g.y1), (g.x0, g.x1)),
         )
         return h / (self.n * g.cell_area)

@@ -15,7 +15,8 @@ from hydra.core.config_store import ConfigStore
 @dataclass
 class GridConf:
     """``n``: cells per side of the square domain ``[0, length]^2``; ``length`` in
-    length units (the paper: 30 cells on the unit square)."""
+    length units (the paper: 30 cells on the unit square).
+    """
 
     n: int = 30
     length: float = 1.0
@@ -24,7 +25,8 @@ class GridConf:
 @dataclass
 class DynamicsConf:
     """``sigma``: noise intensity in ``dX = v dt + sqrt(2 sigma) dB`` (length^2 / s);
-    the paper's ``sqrt(2 sigma) = 0.01`` gives ``5e-5``."""
+    the paper's ``sqrt(2 sigma) = 0.01`` gives ``5e-5``.
+    """
 
     sigma: float = 5e-5
 
@@ -34,7 +36,8 @@ class ControlConf:
     """``law``: ``paper`` (eq. ``modified density feedback law using estimates``) or
     ``heat`` (prior law, estimate in the denominator); ``alpha``: feedback gain
     (length^4 / s); ``density_floor``: the heat law's floor on ``p_hat`` (1 /
-    length^2); ``noise_compensation``: the heat law's ``-sigma q_hat / p_hat`` term."""
+    length^2); ``noise_compensation``: the heat law's ``-sigma q_hat / p_hat`` term.
+    """
 
     law: str = "paper"
     alpha: float = 0.003
@@ -73,7 +76,8 @@ class DensityConf:
 @dataclass
 class MeanFieldConf:
     """The mean-field closed loop with exact estimates (``make reproduce`` until
-    the agent-level experiment lands)."""
+    the agent-level experiment lands).
+    """
 
     grid: GridConf = field(default_factory=GridConf)
     dynamics: DynamicsConf = field(default_factory=DynamicsConf)
@@ -86,7 +90,8 @@ class MeanFieldConf:
 
 def density_spec(conf: Any) -> dict:
     """The plain mapping :func:`harness.densities.make_density` takes, from a
-    :class:`DensityConf` (only the keys its ``kind`` uses)."""
+    :class:`DensityConf` (only the keys its ``kind`` uses).
+    """
     kind = conf.kind
     if kind == "box":
         return {"kind": kind, "x0": conf.x0, "x1": conf.x1, "y0": conf.y0, "y1": conf.y1}

@@ -32,7 +32,8 @@ class Density(Protocol):
 
     def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
         """``n`` positions drawn from the density on the grid's domain, shape ``(2, n)``
-        (row 0: x, row 1: y)."""
+        (row 0: x, row 1: y).
+        """
         ...
 
 
@@ -41,9 +42,11 @@ class Uniform:
     """The uniform density ``1 / |Omega|``."""
 
     def on_grid(self, grid: Grid) -> np.ndarray:
+        """Cell values ``1 / |Omega|``."""
         return np.full(grid.shape, 1.0 / grid.area)
 
     def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
+        """Uniform positions on the domain, shape ``(2, n)``."""
         return Box(grid.x0, grid.x1, grid.y0, grid.y1).sample(n, grid, rng)
 
 
@@ -62,19 +65,23 @@ class Box:
     y1: float = 0.85
 
     def _check(self, grid: Grid) -> None:
-        if not (grid.x0 <= self.x0 < self.x1 <= grid.x1 and grid.y0 <= self.y0 < self.y1 <= grid.y1):
+        if not (
+            grid.x0 <= self.x0 < self.x1 <= grid.x1 and grid.y0 <= self.y0 < self.y1 <= grid.y1
+        ):
             raise ValueError(
                 f"box [{self.x0}, {self.x1}] x [{self.y0}, {self.y1}] is empty or not inside "
                 f"the domain [{grid.x0}, {grid.x1}] x [{grid.y0}, {grid.y1}]"
             )
 
     def on_grid(self, grid: Grid) -> np.ndarray:
+        """Covered cell fraction over the box area."""
         self._check(grid)
         fx = _overlap(grid.x - grid.dx / 2, grid.x + grid.dx / 2, self.x0, self.x1) / grid.dx
         fy = _overlap(grid.y - grid.dy / 2, grid.y + grid.dy / 2, self.y0, self.y1) / grid.dy
         return np.outer(fy, fx) / ((self.x1 - self.x0) * (self.y1 - self.y0))
 
     def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
+        """Uniform positions in the box, shape ``(2, n)``."""
         self._check(grid)
         x = rng.uniform(self.x0, self.x1, size=n)
         y = rng.uniform(self.y0, self.y1, size=n)
@@ -145,16 +152,21 @@ class GaussianMixture:
         return (1 - self.floor) * m + self.floor / grid.area
 
     def on_grid(self, grid: Grid) -> np.ndarray:
+        """Mixture at the cell centres normalised on the grid, plus the floor."""
         x, y = grid.mesh
         m = grid.normalise(self.mixture(x, y))
         return (1 - self.floor) * m + self.floor / grid.area
 
     def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
         """Exact samples of the continuous density by rejection from the uniform
-        proposal (acceptance ``p / p_max``; ``p_max`` bounded by the sum of peaks)."""
-        peak = sum(
-            w / (2 * np.pi * s * s) for w, s in zip(self._w, self.stds, strict=True)
-        ) * (1 - self.floor) / self.mixture_mass(grid) + self.floor / grid.area
+        proposal (acceptance ``p / p_max``; ``p_max`` bounded by the sum of peaks).
+        """
+        peak = (
+            sum(w / (2 * np.pi * s * s) for w, s in zip(self._w, self.stds, strict=True))
+            * (1 - self.floor)
+            / self.mixture_mass(grid)
+            + self.floor / grid.area
+        )
         out = np.empty((2, 0))
         while out.shape[1] < n:
             m = max(2 * (n - out.shape[1]), 1024)
@@ -224,6 +236,7 @@ class Target:
 
     @classmethod
     def from_density(cls, grid: Grid, density: Density) -> Target:
+        """Put ``density`` on ``grid``; it must be strictly positive there."""
         p = density.on_grid(grid)
         if not (np.isfinite(p).all() and p.min() > 0):
             raise ValueError(

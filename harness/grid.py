@@ -107,12 +107,14 @@ class Grid:
     # --- integrals and norms ------------------------------------------------------
     def integrate(self, f: np.ndarray) -> float:
         """Midpoint integral ``int f dx`` of a scalar field (or the sum over the
-        components of a vector field)."""
+        components of a vector field).
+        """
         return float(np.sum(f) * self.cell_area)
 
     def inner(self, f: np.ndarray, g: np.ndarray) -> float:
         """L2 inner product ``<f, g> = int f . g dx`` (vector fields: summed over
-        components)."""
+        components).
+        """
         return float(np.vdot(f, g).real * self.cell_area)
 
     def l2(self, f: np.ndarray) -> float:
@@ -142,7 +144,8 @@ class Grid:
     @cached_property
     def gradient_matrix(self) -> sp.csr_matrix:
         """Sparse ``(2M, M)`` matrix ``G`` with ``G @ f.ravel() ==
-        gradient(f).ravel()``."""
+        gradient(f).ravel()``.
+        """
         dx_1d = _gradient_1d(self.nx, self.dx)
         dy_1d = _gradient_1d(self.ny, self.dy)
         gx = sp.kron(sp.identity(self.ny), dx_1d)

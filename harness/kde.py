@@ -28,12 +28,11 @@ Two evaluation paths give the same estimator:
 Measurement noise (notes section 3). For independent samples of ``p`` the KDE
 fluctuates with variance ``Var[p_KDE] ~ k p`` and ``Var[d_i p_KDE] ~ k_g p``,
 
-    k   = int K^2       / (N h^2) = 1 / (4 pi N h^2)     (1 / ... units: length^2 * density^-1 * density^2 ... see below)
-    k_g = int (d_i K)^2 / (N h^4) = 1 / (8 pi N h^4),
+    k   = int K^2       / (N h^2) = 1 / (4 pi N h^2)     (1 / length^2)
+    k_g = int (d_i K)^2 / (N h^4) = 1 / (8 pi N h^4)     (1 / length^4)
 
-so ``k`` has units length^2 (``k p`` is a density squared, 1/length^4) and ``k_g``
-units 1 (``k_g p`` is a squared gradient, 1/length^6, times length^2 ... per
-unit cell area). See :func:`noise_constants`.
+(see :func:`noise_constants`); the variance of the gradient is proportional to
+``p``, not to ``grad p``.
 """
 
 from __future__ import annotations
@@ -53,7 +52,7 @@ def noise_constants(n_robots: int, bandwidth: float) -> tuple[float, float]:
 
     ``Var[p_KDE(x)] ~ k p(x)`` and ``Var[d_x p_KDE(x)] = Var[d_y p_KDE(x)] ~ k_g p(x)``
     with ``k = 1 / (4 pi N h^2)`` and ``k_g = 1 / (8 pi N h^4)``. For ``N = 1024``,
-    ``h = 0.04``: ``k ~ 0.049`` (length^2) and ``k_g ~ 15.2`` (dimensionless).
+    ``h = 0.04``: ``k ~ 0.049`` (1 / length^2) and ``k_g ~ 15.2`` (1 / length^4).
     """
     if n_robots < 1 or not bandwidth > 0:
         raise ValueError(f"need N >= 1 and h > 0, got N={n_robots}, h={bandwidth}")
@@ -69,7 +68,8 @@ than ``exp(-81/2) ~ 3e-18`` of a kernel peak and are skipped."""
 
 def _gauss_inplace(e: np.ndarray) -> np.ndarray:
     """``e <- exp(-e^2 / 2)`` in place, the exponent clipped at -200 (``e^-200 ~
-    1e-87``): exponentials that underflow take a slow path in libm."""
+    1e-87``): exponentials that underflow take a slow path in libm.
+    """
     np.square(e, out=e)
     e *= -0.5
     np.maximum(e, -200.0, out=e)
@@ -190,7 +190,8 @@ class KDE:
 
     def bin_weights(self, positions: np.ndarray) -> np.ndarray:
         """Linear-binning weights on the fine nodes, shape ``(By + 1, Bx + 1)``,
-        summing to 1 (each robot splits its 1/N over the 4 surrounding nodes)."""
+        summing to 1 (each robot splits its 1/N over the 4 surrounding nodes).
+        """
         g = self.grid
         bx, by = self.bin_factor * g.nx, self.bin_factor * g.ny
         tx = (positions[0] - g.x0) * (bx / (g.x1 - g.x0))
@@ -215,11 +216,17 @@ class KDE:
 
     def binned(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Linear binning on the fine nodes (compiled; :meth:`bin_weights` is the
-        numpy reference), then the exact kernel sum over the nodes."""
+        numpy reference), then the exact kernel sum over the nodes.
+        """
         g = self.grid
         w = linear_binning(
             np.ascontiguousarray(positions, dtype=float),
-            g.x0, g.x1, g.y0, g.y1, self.bin_factor * g.nx, self.bin_factor * g.ny,
+            g.x0,
+            g.x1,
+            g.y0,
+            g.y1,
+            self.bin_factor * g.nx,
+            self.bin_factor * g.ny,
         )
         kx, dkx, ky, dky = self._node_kernels
         wkx = w @ kx

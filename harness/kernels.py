@@ -67,7 +67,8 @@ def linear_binning(
     pos: np.ndarray, x0: float, x1: float, y0: float, y1: float, bx: int, by: int
 ) -> np.ndarray:
     """Linear-binning weights on the ``(by + 1, bx + 1)`` nodes, each robot adding
-    ``1/N`` split bilinearly over its four surrounding nodes."""
+    ``1/N`` split bilinearly over its four surrounding nodes.
+    """
     out = np.zeros((by + 1, bx + 1))
     n = pos.shape[1]
     sx = bx / (x1 - x0)

@@ -7,12 +7,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from harness.densities import Target  # noqa: E402
-from harness.grid import Grid  # noqa: E402
-from harness.meanfield import MeanFieldResult  # noqa: E402
+from harness.densities import Target
+from harness.grid import Grid
+from harness.meanfield import MeanFieldResult
 
 
 def plot_meanfield_convergence(
@@ -25,7 +25,8 @@ def plot_meanfield_convergence(
     name: str = "meanfield_convergence",
 ) -> list[Path]:
     """Initial density, final density, target, and ``||p - p_*||`` and ``V`` over
-    time on a log scale with the theoretical rate ``(alpha + sigma) lambda``."""
+    time on a log scale with the theoretical rate ``(alpha + sigma) lambda``.
+    """
     out_dir.mkdir(parents=True, exist_ok=True)
     fig = plt.figure(figsize=(13, 3.6), constrained_layout=True)
     axes = fig.subplots(1, 4, gridspec_kw={"width_ratios": [1, 1, 1, 1.6]})

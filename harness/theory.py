@@ -1,5 +1,6 @@
 """Theory quantities computed on the grid: the weighted Poincare constant and the
-Lyapunov function of the paper's stability proofs."""
+Lyapunov function of the paper's stability proofs.
+"""
 
 from __future__ import annotations
 
@@ -12,14 +13,16 @@ from harness.grid import Grid
 
 def lyapunov(grid: Grid, p: np.ndarray, p_star: np.ndarray) -> float:
     """``V = 1/2 int (p - p_*)^2 / p_*`` (the Lyapunov function in the proofs of the
-    paper's Theorems ``thm:exponential stability`` and ``thm:ISS``; units 1 / length^2)."""
+    paper's Theorems ``thm:exponential stability`` and ``thm:ISS``; units 1 / length^2).
+    """
     return 0.5 * grid.integrate((p - p_star) ** 2 / p_star)
 
 
 def weighted_laplacian(grid: Grid, weight: np.ndarray) -> sp.csr_matrix:
     """Finite-volume matrix of ``-div(w grad f)`` with zero-flux walls; the face
     weight is the arithmetic mean of the two cells. Symmetric positive
-    semi-definite (after scaling by the cell area), constants in its kernel."""
+    semi-definite (after scaling by the cell area), constants in its kernel.
+    """
     idx = np.arange(grid.size).reshape(grid.shape)
     rows, cols, vals = [], [], []
     for left, right, wl, wr, h in (

@@ -14,7 +14,8 @@ from harness.grid import Grid
 def cosine_mode(grid: Grid, kx: int, ky: int) -> np.ndarray:
     """Neumann cosine mode ``cos(kx pi (x - x0)/Lx) cos(ky pi (y - y0)/Ly)`` at the
     cell centres. On a cell-centred grid it is an exact eigenvector of the
-    finite-volume Laplacian with zero-flux walls."""
+    finite-volume Laplacian with zero-flux walls.
+    """
     lx, ly = grid.x1 - grid.x0, grid.y1 - grid.y0
     x, y = grid.mesh
     return np.cos(kx * np.pi * (x - grid.x0) / lx) * np.cos(ky * np.pi * (y - grid.y0) / ly)
@@ -22,7 +23,8 @@ def cosine_mode(grid: Grid, kx: int, ky: int) -> np.ndarray:
 
 def continuum_decay_rate(grid: Grid, kx: int, ky: int, sigma: float) -> float:
     """Decay rate ``sigma pi^2 (kx^2 / Lx^2 + ky^2 / Ly^2)`` (1 / time) of the cosine
-    mode under ``d_t p = sigma Laplacian(p)`` with zero-flux walls."""
+    mode under ``d_t p = sigma Laplacian(p)`` with zero-flux walls.
+    """
     lx, ly = grid.x1 - grid.x0, grid.y1 - grid.y0
     return sigma * np.pi**2 * (kx**2 / lx**2 + ky**2 / ly**2)
 
@@ -30,7 +32,8 @@ def continuum_decay_rate(grid: Grid, kx: int, ky: int, sigma: float) -> float:
 def discrete_decay_rate(grid: Grid, kx: int, ky: int, sigma: float) -> float:
     """Eigenvalue magnitude of the cosine mode for the 5-point finite-volume
     Laplacian: ``sigma (4/dx^2 sin^2(kx pi dx / 2Lx) + 4/dy^2 sin^2(ky pi dy / 2Ly))``.
-    It equals the continuum rate up to ``O(dx^2)``."""
+    It equals the continuum rate up to ``O(dx^2)``.
+    """
     lx, ly = grid.x1 - grid.x0, grid.y1 - grid.y0
     return sigma * (
         4 / grid.dx**2 * np.sin(kx * np.pi * grid.dx / (2 * lx)) ** 2

@@ -28,7 +28,9 @@ def test_box_cell_fractions_on_cut_cells():
 
 def test_mixture_floor_and_continuous_mass():
     g = Grid.square(200)
-    m = GaussianMixture(means=((0.2, 0.2), (0.9, 0.5)), stds=(0.05, 0.2), weights=(1, 3), floor=0.25)
+    m = GaussianMixture(
+        means=((0.2, 0.2), (0.9, 0.5)), stds=(0.05, 0.2), weights=(1, 3), floor=0.25
+    )
     p = m.on_grid(g)
     assert p.min() >= 0.25 - 1e-12
     x, y = g.mesh
@@ -58,7 +60,16 @@ def test_samples_follow_the_density(density, rng):
         ({"kind": "box", "x0": 0.5, "x1": 0.4, "y0": 0, "y1": 1}, "box"),
         ({"kind": "box", "x0": -0.1, "x1": 0.4, "y0": 0, "y1": 1}, "box"),
         ({"kind": "gaussian_mixture", "means": [[0.5, 0.5]], "stds": [0], "weights": [1]}, "stds"),
-        ({"kind": "gaussian_mixture", "means": [[0.5, 0.5]], "stds": [0.1], "weights": [1], "floor": 0}, "floor"),
+        (
+            {
+                "kind": "gaussian_mixture",
+                "means": [[0.5, 0.5]],
+                "stds": [0.1],
+                "weights": [1],
+                "floor": 0,
+            },
+            "floor",
+        ),
         ({"kind": "gaussian_mixture", "means": [[0.5]], "stds": [0.1], "weights": [1]}, "pair"),
         ({"kind": "gaussian_mixture", "means": [], "stds": [], "weights": []}, "means"),
     ],

@@ -43,7 +43,9 @@ def test_reference_rate_matches_sparse_matrix(n, sigma, scale, seed):
     p = random_density(g, rng)
     op = FokkerPlanck(g, sigma)
     expected = rate(g, p, v, sigma)
-    np.testing.assert_allclose(op.rate(p, v), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(
+        op.rate(p, v), expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max()
+    )
 
 
 @pytest.mark.parametrize("n", [8, 30, 128])

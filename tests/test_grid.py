@@ -48,7 +48,9 @@ def test_gradient_is_exact_for_quadratics_and_matches_matrix():
     grad = g.gradient(f)
     np.testing.assert_allclose(grad[0], 6 * x - 2 * y + 1, atol=1e-11)
     np.testing.assert_allclose(grad[1], -2 * x + 2 * y, atol=1e-11)
-    np.testing.assert_allclose((g.gradient_matrix @ f.ravel()).reshape(2, *g.shape), grad, atol=1e-12)
+    np.testing.assert_allclose(
+        (g.gradient_matrix @ f.ravel()).reshape(2, *g.shape), grad, atol=1e-12
+    )
 
 
 def test_gradient_converges_at_second_order():

@@ -64,7 +64,9 @@ def test_binned_agrees_with_exact(n_robots, rng):
     from harness.kernels import linear_binning
 
     np.testing.assert_allclose(
-        linear_binning(positions, 0.0, 1.0, 0.0, 1.0, 120, 120), kde.bin_weights(positions), atol=1e-15
+        linear_binning(positions, 0.0, 1.0, 0.0, 1.0, 120, 120),
+        kde.bin_weights(positions),
+        atol=1e-15,
     )
 
 

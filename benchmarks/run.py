@@ -1,0 +1,117 @@
+"""Speed benchmarks: `make bench`. Each figure is printed next to its target.
+
+Medians over repeats, wall-clock, one process; run with nothing else on the
+machine. Times are per call in milliseconds (ms).
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+
+import numpy as np
+from threadpoolctl import threadpool_info
+
+from harness.agents import Swarm
+from harness.control import paper_law
+from harness.densities import DEFAULT_TARGET, Box, Target
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.kde import KDE
+
+
+def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
+    """Median wall time of ``fn`` in ms."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def report(name: str, value_ms: float, target_ms: float | None) -> bool:
+    """Print one line; return whether the target is met."""
+    if target_ms is None:
+        print(f"  {name:<52s} {value_ms:9.3f} ms")
+        return True
+    ok = value_ms <= target_ms
+    verdict = "OK" if ok else "MISSED"
+    print(f"  {name:<52s} {value_ms:9.3f} ms   target <= {target_ms:g} ms   {verdict}")
+    return ok
+
+
+def bench_kde_agents() -> bool:
+    """KDE + agent step (issue: foundation)."""
+    print("KDE (density + gradient) and agent step, n = 30, h = 0.04:")
+    g = Grid.square(30)
+    rng = np.random.default_rng(0)
+    target = Target.from_density(g, DEFAULT_TARGET)
+    p0 = Box().on_grid(g)
+    v = paper_law(p0, g.gradient(p0), target, 0.003, 5e-5)
+    ok = True
+    for n_robots, repeats, target_ms in ((1024, 400, 0.5), (1_000_000, 15, 80.0)):
+        swarm = Swarm(g, Box().sample(n_robots, g, rng), 5e-5)
+        kde = KDE(g, 0.04)
+
+        def loop(swarm=swarm, kde=kde) -> None:
+            swarm.step(v, 0.01, rng)
+            kde(swarm.positions)
+
+        t_kde = median_ms(lambda swarm=swarm, kde=kde: kde(swarm.positions), repeats)
+        t_agent = median_ms(lambda swarm=swarm: swarm.step(v, 0.01, rng), repeats)
+        t_both = median_ms(loop, repeats)
+        method = "exact" if n_robots <= kde.exact_max_robots else "binned"
+        report(f"N = {n_robots:>9,d}: KDE ({method})", t_kde, None)
+        report(f"N = {n_robots:>9,d}: agent step", t_agent, None)
+        ok &= report(f"N = {n_robots:>9,d}: KDE + agent step", t_both, target_ms)
+        if n_robots <= 4096:
+            report(
+                f"N = {n_robots:>9,d}: KDE exact path (for reference)",
+                median_ms(lambda swarm=swarm, kde=kde: kde.exact(swarm.positions), repeats),
+                None,
+            )
+    return ok
+
+
+def bench_fokker_planck() -> bool:
+    """Fokker-Planck operator assembly and step."""
+    print("Fokker-Planck (backward Euler) under the paper's law, mid-run state p = 0.7 p* + 0.3:")
+    ok = True
+    for n in (30, 64, 128):
+        g = Grid.square(n)
+        target = Target.from_density(g, DEFAULT_TARGET)
+        p = 0.7 * target.p + 0.3 / g.area
+        v = paper_law(p, g.gradient(p), target, 0.003, 5e-5)
+        op = FokkerPlanck(g, 5e-5)
+        report(f"n = {n:>3d}: assemble A(v)", median_ms(lambda op=op, v=v: op.matrix(v), 50), None)
+        report(
+            f"n = {n:>3d}: step dt = 0.01",
+            median_ms(lambda op=op, p=p, v=v: op.step(p, v, 0.01), 50),
+            None,
+        )
+        report(
+            f"n = {n:>3d}: step dt = 0.01 by sparse LU",
+            median_ms(lambda op=op, p=p, v=v: op.step_lu(p, v, 0.01), 20),
+            None,
+        )
+    return ok
+
+
+def main() -> None:
+    """Run every benchmark and summarise."""
+    print(
+        f"densityloop benchmarks on {platform.processor() or platform.machine()}, "
+        f"Python {platform.python_version()}"
+    )
+    blas = {(i.get("internal_api"), i.get("num_threads")) for i in threadpool_info()}
+    print(f"BLAS: {sorted(blas)}")
+    results = [bench_kde_agents(), bench_fokker_planck()]
+    print("all targets met" if all(results) else "SOME TARGETS MISSED")
+
+
+if __name__ == "__main__":
+    main()
