@@ -1,0 +1,158 @@
+"""What both filter forms share: settings, measurement covariances, the
+sampled-data transition, and the integration operator of the gradient filter.
+
+Sampled-data form (derivation). The paper writes the filters in continuous time
+(eqs. ``density filter`` and ``density Riccati``) for ``dp/dt = A(t) p`` observed
+through ``y = p + w``. In the harness, measurements (KDEs) arrive every ``dt`` and
+the velocity, hence ``A``, is held over each interval. The plant's own discrete
+model is the truth stepper of :mod:`harness.fokker_planck`:
+
+    p_{n+1} = F_n p_n,      F_n = (I - dt A(v_n))^{-1}       (backward Euler),
+
+so the filter that is exact for the discretised plant is the discrete Kalman
+filter with that ``F_n``; ``F_n`` agrees with ``exp(dt A)`` to ``O(dt^2)`` per step,
+which makes it a consistent discretisation of the continuous filter (the
+continuous gain ``P R_c^{-1}`` corresponds to ``R_c = R dt``). With process noise
+``Q = q dt I`` (continuous intensity ``q I``) and ``H = I``:
+
+    predict:  x^- = F x^+,               P^- = F P^+ F^T + Q
+    update:   S = P^- + R,  K = P^- S^{-1},
+              x^+ = x^- + K (y - x^-),   P^+ = (I - K) P^- (I - K)^T + K R K^T.
+
+Unlike an explicit Euler step of the Riccati equation, which turns ``P`` indefinite
+when ``P >> R dt`` (start-up with a large ``P0``), the discrete update keeps
+``0 <= P^+ <= min(P^-, R)`` for every ``P^-``: it is stable for any initial
+covariance. ``F`` has non-negative entries and unit column sums, so the prediction
+also keeps the mass of ``x``.
+
+Measurement covariances (notes section 3). The KDE's pointwise variance is
+``k p`` for the density and ``k_g p`` for each gradient component, so
+
+    R   = r_scale k   diag(max(p_KDE, r_floor))
+    R_g = r_scale k_g diag(max(p_KDE, r_floor))   (both components).
+
+``R_g`` uses the variance the KDE gradient actually has, proportional to ``p``; the
+paper's ``k_g diag(grad p_KDE)`` is not positive definite. The floor keeps
+``R^{-1}`` bounded where the KDE is about 0 (outside the initial square at
+``t = 0``), as the paper's Theorems ``thm:stability of density filter`` and
+``thm:stability of gradient filter`` assume. ``r_scale`` (default 1) accounts for
+the strong correlation of successive KDE frames, which makes independent-frame
+filters overconfident.
+
+Process noise default. With ``Q = 0`` the covariance tends to 0 and with it the
+gain, and ``P^{-1}`` is unbounded, contrary to the theorems' assumption
+``c_1 I <= P^{-1} <= c_2 I``. A small ``q`` keeps ``P`` bounded below.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from harness.grid import Grid
+from harness.kde import noise_constants
+
+
+@dataclass(frozen=True)
+class FilterSettings:
+    """Filter parameters (config block ``filter``).
+
+    Attributes:
+        process_noise: ``q >= 0``: ``Q = q dt I`` per step; units of ``p^2`` per
+            second (1 / (length^4 s)) for the density filter and of ``(grad p)^2``
+            per second for the gradient filter.
+        r_scale: Multiplier ``> 0`` on the KDE noise constants in ``R`` and ``R_g``.
+        r_floor: Density floor ``> 0`` in ``R`` (1 / length^2).
+        initial_variance: ``P0 = initial_variance * k * I`` for the density and
+            ``initial_variance * k_g * I`` for the gradient (dimensionless factor
+            ``> 0``, in units of the measurement variance at unit density).
+        modes: Cosine modes per axis of the modal (fast) filters.
+    """
+
+    process_noise: float = 1e-3
+    r_scale: float = 1.0
+    r_floor: float = 0.05
+    initial_variance: float = 10.0
+    modes: int = 12
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.process_noise) and self.process_noise >= 0):
+            raise ValueError(f"filter.process_noise must be >= 0, got {self.process_noise}")
+        for name in ("r_scale", "r_floor", "initial_variance"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"filter.{name} must be > 0, got {value}")
+        if self.modes < 2:
+            raise ValueError(f"filter.modes must be >= 2, got {self.modes}")
+
+
+@dataclass(frozen=True)
+class MeasurementModel:
+    """KDE measurement covariances for ``N`` robots and bandwidth ``h``."""
+
+    n_robots: int
+    bandwidth: float
+    settings: FilterSettings
+
+    @property
+    def constants(self) -> tuple[float, float]:
+        """``(k, k_g)`` of :func:`harness.kde.noise_constants`."""
+        return noise_constants(self.n_robots, self.bandwidth)
+
+    def density_variance(self, p_kde: np.ndarray) -> np.ndarray:
+        """Diagonal of ``R``, flattened (1 / length^4)."""
+        k, _ = self.constants
+        s = self.settings
+        return s.r_scale * k * np.maximum(p_kde, s.r_floor).ravel()
+
+    def gradient_variance(self, p_kde: np.ndarray) -> np.ndarray:
+        """Diagonal of ``R_g`` for the stacked ``(gx, gy)``, flattened (1 / length^6)."""
+        _, k_g = self.constants
+        s = self.settings
+        one = s.r_scale * k_g * np.maximum(p_kde, s.r_floor).ravel()
+        return np.concatenate([one, one])
+
+
+def transition_dense(a: sp.spmatrix, dt: float) -> np.ndarray:
+    """Dense ``F = (I - dt A)^{-1}`` (reference filters, small grids)."""
+    m = a.shape[0]
+    lu = spla.splu((sp.identity(m, format="csc") - dt * a).tocsc())
+    return lu.solve(np.eye(m))
+
+
+@dataclass(frozen=True)
+class Integrator:
+    """The integration operator ``I`` of eq. ``gradient equation`` on the grid.
+
+    ``I(q)`` is the density whose grid gradient best matches ``q`` and whose mass is
+    1: ``I(q) = G^+ q + 1 / |Omega|``, with ``G`` the grid gradient
+    (:attr:`harness.grid.Grid.gradient_matrix`) and ``G^+`` its Moore-Penrose
+    pseudo-inverse. ``G`` annihilates exactly the constants, so ``G^+ q`` has zero
+    mean, and for every density of unit mass ``I(G p) = p``: the gradient, the
+    integrator and the Fokker-Planck matrix fit together so that ``q = G p``
+    evolves exactly as ``q_{n+1} = G F_n I(q_n)`` (the discrete eq. ``gradient
+    equation``, affine because of the mass constraint):
+
+        q_{n+1} = F_g q_n + u_n,   F_g = G F_n G^+,   u_n = G F_n 1 / |Omega|.
+
+    The paper fixes the constant by the wall condition instead; for a density of
+    known mass the two agree. Dense, for the reference filter on small grids.
+    """
+
+    grid: Grid
+    pinv: np.ndarray
+
+    @classmethod
+    def build(cls, grid: Grid) -> Integrator:
+        """Compute ``G^+`` densely (an SVD of the ``2M x M`` gradient matrix)."""
+        g = grid.gradient_matrix.toarray()
+        return cls(grid=grid, pinv=sla.pinv(g))
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        """``I(q)`` for a stacked gradient ``(2M,)`` or ``(2, ny, nx)``."""
+        p = self.pinv @ np.asarray(q).ravel() + 1.0 / self.grid.area
+        return p.reshape(self.grid.shape)

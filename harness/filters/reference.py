@@ -1,0 +1,236 @@
+"""Reference grid filters: the paper's density and gradient filters, dense.
+
+Every grid cell is a state (``M = nx ny`` states for the density, ``2M`` for the
+gradient) and the covariance is a dense matrix, so a step costs ``O(M^3)``. They
+implement the sampled-data form derived in :mod:`harness.filters.common`
+faithfully, are cross-checked against filterpy's ``KalmanFilter`` in the tests,
+and are the yardstick for the fast modal filters. Use them on small grids.
+
+Symbols (filterpy's): ``x`` state, ``P`` covariance, ``F`` transition, ``Q``
+process noise, ``H = I`` measurement matrix, ``R`` measurement covariance,
+``K`` gain, ``S`` innovation covariance; ``x_prior, P_prior`` after predict and
+``x_post, P_post`` after update.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+from filterpy.kalman import KalmanFilter
+
+from harness.filters.common import FilterSettings, Integrator, MeasurementModel, transition_dense
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.velocity import VelocityField
+
+
+@dataclass
+class DenseKalman:
+    """Discrete Kalman filter with ``H = I`` and diagonal ``R`` (dense ``P``).
+
+    ``engine='numpy'`` computes the equations below directly; ``engine='filterpy'``
+    hands the same ``F, Q, R`` to ``filterpy.kalman.KalmanFilter`` (slower; used as
+    the reference in tests and as the baseline in benchmarks).
+    """
+
+    x: np.ndarray
+    P: np.ndarray
+    engine: str = "numpy"
+    x_prior: np.ndarray = field(init=False)
+    P_prior: np.ndarray = field(init=False)
+    x_post: np.ndarray = field(init=False)
+    P_post: np.ndarray = field(init=False)
+    _kf: KalmanFilter | None = field(init=False, default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.engine not in ("numpy", "filterpy"):
+            raise ValueError(f"filter engine must be numpy or filterpy, got {self.engine!r}")
+        self.x = np.asarray(self.x, dtype=float).copy()
+        self.P = np.asarray(self.P, dtype=float).copy()
+        self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
+        self.x_post, self.P_post = self.x.copy(), self.P.copy()
+        if self.engine == "filterpy":
+            m = self.x.size
+            kf = KalmanFilter(dim_x=m, dim_z=m)
+            kf.x = self.x.reshape(m, 1).copy()
+            kf.P = self.P.copy()
+            kf.H = np.eye(m)
+            self._kf = kf
+
+    def predict(self, F: np.ndarray, q: float, u: np.ndarray | None = None) -> None:
+        """``x^- = F x^+ + u``, ``P^- = F P^+ F^T + q I``."""
+        if self._kf is not None:
+            m = self.x.size
+            self._kf.F = F
+            self._kf.Q = q * np.eye(m)
+            if u is None:
+                self._kf.predict()
+            else:
+                self._kf.B = np.eye(m)
+                self._kf.predict(u=u.reshape(m, 1))
+            self.x, self.P = self._kf.x.ravel().copy(), self._kf.P.copy()
+        else:
+            self.x = F @ self.x
+            if u is not None:
+                self.x = self.x + u
+            self.P = F @ self.P @ F.T
+            self.P[np.diag_indices_from(self.P)] += q
+        self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
+
+    def update(self, y: np.ndarray, r: np.ndarray) -> None:
+        """Measurement update with ``H = I`` and ``R = diag(r)`` (Joseph form).
+
+            S = P^- + R,  K = P^- S^{-1},  x^+ = x^- + K (y - x^-),
+            P^+ = (I - K) P^- (I - K)^T + K R K^T.
+        """
+        y = np.asarray(y, dtype=float).ravel()
+        if self._kf is not None:
+            self._kf.update(y.reshape(-1, 1), R=np.diag(r))
+            self.x, self.P = self._kf.x.ravel().copy(), self._kf.P.copy()
+        else:
+            s = self.P.copy()
+            s[np.diag_indices_from(s)] += r
+            # K = P S^{-1} = (S^{-1} P)^T since P and S are symmetric
+            k = sla.cho_solve(sla.cho_factor(s), self.P).T
+            self.x = self.x + k @ (y - self.x)
+            i_k = -k
+            i_k[np.diag_indices_from(i_k)] += 1.0
+            self.P = i_k @ self.P @ i_k.T + (k * r) @ k.T
+        self.x_post, self.P_post = self.x.copy(), self.P.copy()
+
+
+class ReferenceDensityFilter:
+    """The density filter (eqs. ``density filter``, ``density Riccati``) on the grid.
+
+    State ``p`` (``M`` cells), ``F_n = (I - dt A(v_n))^{-1}``, ``Q = q dt I``,
+    ``y = p_KDE``, ``R = r_scale k diag(max(p_KDE, r_floor))``; see
+    :mod:`harness.filters.common` for the derivation.
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        sigma: float,
+        dt: float,
+        measurement: MeasurementModel,
+        engine: str = "numpy",
+    ) -> None:
+        self.grid, self.dt, self.measurement = grid, dt, measurement
+        self.settings: FilterSettings = measurement.settings
+        self.operator = FokkerPlanck(grid, sigma)
+        self.engine = engine
+        self.kf: DenseKalman | None = None
+
+    @property
+    def q(self) -> float:
+        """Per-step process-noise variance ``q dt``."""
+        return self.settings.process_noise * self.dt
+
+    def initialize(self, p_kde: np.ndarray) -> np.ndarray:
+        """Start at ``x0 = p_KDE(0)``, ``P0 = initial_variance k I``."""
+        k, _ = self.measurement.constants
+        m = self.grid.size
+        self.kf = DenseKalman(
+            p_kde.ravel(), self.settings.initial_variance * k * np.eye(m), engine=self.engine
+        )
+        return self.estimate
+
+    def step(self, p_kde: np.ndarray, v_applied: VelocityField) -> np.ndarray:
+        """Predict over the last interval under ``v_applied``, then update with ``p_kde``."""
+        assert self.kf is not None, "call initialize first"
+        f = transition_dense(self.operator.matrix(v_applied), self.dt)
+        self.kf.predict(f, self.q)
+        self.kf.update(p_kde, self.measurement.density_variance(p_kde))
+        return self.estimate
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """``p_hat``, shape ``(ny, nx)``."""
+        assert self.kf is not None
+        return self.kf.x.reshape(self.grid.shape)
+
+    @property
+    def trace_P(self) -> float:  # noqa: N802
+        """``trace(P)`` after the last update, times the cell area (the L2 trace)."""
+        assert self.kf is not None
+        return float(np.trace(self.kf.P)) * self.grid.cell_area
+
+    @property
+    def trace_Q(self) -> float:  # noqa: N802
+        """``trace(Q)`` per step, times the cell area."""
+        return self.q * self.grid.size * self.grid.cell_area
+
+
+class ReferenceGradientFilter:
+    """The gradient filter (eqs. ``gradient filter``, ``gradient Riccati``) on the grid.
+
+    State ``q`` (``2M``: x then y components), ``F_g = G F_n G^+``, known input
+    ``u_n = G F_n 1/|Omega|`` (mass constraint, :class:`~harness.filters.common.Integrator`),
+    ``Q = q dt I``, ``y_g = grad p_KDE``, ``R_g = r_scale k_g diag(max(p_KDE, r_floor))``.
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        sigma: float,
+        dt: float,
+        measurement: MeasurementModel,
+        engine: str = "numpy",
+        integrator: Integrator | None = None,
+    ) -> None:
+        self.grid, self.dt, self.measurement = grid, dt, measurement
+        self.settings: FilterSettings = measurement.settings
+        self.operator = FokkerPlanck(grid, sigma)
+        self.integrator = integrator or Integrator.build(grid)
+        self.G = grid.gradient_matrix.toarray()
+        self.engine = engine
+        self.kf: DenseKalman | None = None
+
+    @property
+    def q(self) -> float:
+        """Per-step process-noise variance ``q dt``."""
+        return self.settings.process_noise * self.dt
+
+    def initialize(self, grad_kde: np.ndarray) -> np.ndarray:
+        """Start at ``x0 = grad p_KDE(0)``, ``P0 = initial_variance k_g I``."""
+        _, k_g = self.measurement.constants
+        m = 2 * self.grid.size
+        self.kf = DenseKalman(
+            grad_kde.ravel(), self.settings.initial_variance * k_g * np.eye(m), engine=self.engine
+        )
+        return self.estimate
+
+    def transition(self, v_applied: VelocityField) -> tuple[np.ndarray, np.ndarray]:
+        """``(F_g, u)`` for the interval under ``v_applied``."""
+        f = transition_dense(self.operator.matrix(v_applied), self.dt)
+        gf = self.G @ f
+        return gf @ self.integrator.pinv, gf.sum(axis=1) / self.grid.area
+
+    def step(
+        self, grad_kde: np.ndarray, p_kde: np.ndarray, v_applied: VelocityField
+    ) -> np.ndarray:
+        """Predict under ``v_applied``, then update with ``grad p_KDE`` (variance from ``p_KDE``)."""
+        assert self.kf is not None, "call initialize first"
+        fg, u = self.transition(v_applied)
+        self.kf.predict(fg, self.q, u)
+        self.kf.update(grad_kde, self.measurement.gradient_variance(p_kde))
+        return self.estimate
+
+    @property
+    def estimate(self) -> np.ndarray:
+        """``q_hat``, shape ``(2, ny, nx)``."""
+        assert self.kf is not None
+        return self.kf.x.reshape(2, *self.grid.shape)
+
+    @property
+    def trace_P(self) -> float:  # noqa: N802
+        """``trace(P_g)`` after the last update, times the cell area."""
+        assert self.kf is not None
+        return float(np.trace(self.kf.P)) * self.grid.cell_area
+
+    @property
+    def trace_Q(self) -> float:  # noqa: N802
+        """``trace(Q_g)`` per step, times the cell area."""
+        return self.q * 2 * self.grid.size * self.grid.cell_area
