@@ -219,19 +219,7 @@ class FokkerPlanck:
         if not np.isfinite(p).all():
             raise NumericalError("density has non-finite values before the step")
         a = self.matrix(v)
-        rho = dt * 2.0 * float(np.max(np.abs(a.diagonal()), initial=0.0))
-        flat = p.ravel().astype(float)
-        terms = _series_terms(rho)
-        if terms <= _MAX_SERIES_TERMS:
-            term, total = flat, flat.copy()
-            a_dt = a * dt
-            for _ in range(terms):
-                term = a_dt @ term
-                total += term
-            p_next = total.reshape(self.grid.shape)
-        else:
-            system = (sp.identity(self.grid.size, format="csr") - dt * a).tocsc()
-            p_next = spla.splu(system).solve(flat).reshape(self.grid.shape)
+        p_next = implicit_solve(a, dt, p.ravel().astype(float)).reshape(self.grid.shape)
         check_density(self.grid, p, p_next, self.mass_tolerance)
         return p_next
 
@@ -255,6 +243,27 @@ def _series_terms(rho: float) -> int:
     if rho >= 1.0:
         return 10**9
     return max(int(np.ceil(np.log(1e-15 * (1.0 - rho)) / np.log(rho))) - 1, 1)
+
+
+def implicit_solve(a: sp.csr_matrix, dt: float, rhs: np.ndarray) -> np.ndarray:
+    """Solve ``(I - dt A) x = rhs`` for one right-hand side ``(M,)`` or several ``(M, c)``.
+
+    Truncated Neumann series ``sum_k (dt A)^k rhs`` when ``rho = dt ||A||_1`` allows
+    at most ``_MAX_SERIES_TERMS`` terms for a remainder below ``1e-15 ||rhs||_1``
+    (see :meth:`FokkerPlanck.step`), sparse LU otherwise. No checks: estimates
+    propagated by the filters may be negative.
+    """
+    rho = dt * 2.0 * float(np.max(np.abs(a.diagonal()), initial=0.0))
+    terms = _series_terms(rho)
+    if terms <= _MAX_SERIES_TERMS:
+        term, total = rhs, rhs.copy()
+        a_dt = a * dt
+        for _ in range(terms):
+            term = a_dt @ term
+            total += term
+        return total
+    system = (sp.identity(a.shape[0], format="csr") - dt * a).tocsc()
+    return spla.splu(system).solve(rhs)
 
 
 def check_density(grid: Grid, before: np.ndarray, after: np.ndarray, tolerance: float) -> None:

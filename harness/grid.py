@@ -132,20 +132,32 @@ class Grid:
     def gradient(self, f: np.ndarray) -> np.ndarray:
         """Cell-centred gradient of a scalar field, shape ``(2, ny, nx)``.
 
-        Central differences ``(f_{i+1} - f_{i-1}) / (2 dx)`` inside and the
-        second-order one-sided formula ``(-3 f_0 + 4 f_1 - f_2) / (2 dx)`` in the
-        first and last columns (rows likewise); second order everywhere. The same
-        operator is available as the sparse matrix :attr:`gradient_matrix`.
+        Central differences ``(f_{i+1} - f_{i-1}) / (2 dx)`` with reflecting ghost
+        cells at the walls (``f_{-1} = f_0``, ``f_n = f_{n-1}``), the Neumann
+        closure of the reflecting walls. It maps each Neumann cosine mode
+        ``cos(a pi (x - x0) / L)`` exactly onto ``-sin(a pi dx / L) / dx sin(a pi (x -
+        x0) / L)``, so the gradients of distinct modes stay orthogonal (DCT to DST)
+        and the operator has no near-null modes besides the constants. Second order
+        inside and for fields with zero normal derivative at the walls (cosine
+        modes, the reflection KDE); at a wall cell of a field whose normal
+        derivative does not vanish it returns about half that derivative. The same
+        operator is :attr:`gradient_matrix`.
         """
-        gx = np.gradient(f, self.dx, axis=1, edge_order=2)
-        gy = np.gradient(f, self.dy, axis=0, edge_order=2)
+        f = np.asarray(f, dtype=float)
+        gx = np.empty_like(f)
+        gy = np.empty_like(f)
+        gx[:, 1:-1] = (f[:, 2:] - f[:, :-2]) / (2 * self.dx)
+        gx[:, 0] = (f[:, 1] - f[:, 0]) / (2 * self.dx)
+        gx[:, -1] = (f[:, -1] - f[:, -2]) / (2 * self.dx)
+        gy[1:-1, :] = (f[2:, :] - f[:-2, :]) / (2 * self.dy)
+        gy[0, :] = (f[1, :] - f[0, :]) / (2 * self.dy)
+        gy[-1, :] = (f[-1, :] - f[-2, :]) / (2 * self.dy)
         return np.stack([gx, gy])
 
     @cached_property
     def gradient_matrix(self) -> sp.csr_matrix:
         """Sparse ``(2M, M)`` matrix ``G`` with ``G @ f.ravel() ==
-        gradient(f).ravel()``.
-        """
+        gradient(f).ravel()``."""
         dx_1d = _gradient_1d(self.nx, self.dx)
         dy_1d = _gradient_1d(self.ny, self.dy)
         gx = sp.kron(sp.identity(self.ny), dx_1d)
@@ -154,11 +166,11 @@ class Grid:
 
 
 def _gradient_1d(n: int, h: float) -> sp.csr_matrix:
-    """1-D second-order gradient matrix (central inside, one-sided at the ends)."""
+    """1-D central-difference matrix with reflecting ghost cells at both ends."""
     d = sp.lil_matrix((n, n))
     for i in range(1, n - 1):
         d[i, i - 1] = -0.5 / h
         d[i, i + 1] = 0.5 / h
-    d[0, 0:3] = np.array([-1.5, 2.0, -0.5]) / h
-    d[n - 1, n - 3 :] = np.array([0.5, -2.0, 1.5]) / h
+    d[0, 0], d[0, 1] = -0.5 / h, 0.5 / h
+    d[n - 1, n - 2], d[n - 1, n - 1] = -0.5 / h, 0.5 / h
     return d.tocsr()

@@ -13,7 +13,7 @@ so the filter that is exact for the discretised plant is the discrete Kalman
 filter with that ``F_n``; ``F_n`` agrees with ``exp(dt A)`` to ``O(dt^2)`` per step,
 which makes it a consistent discretisation of the continuous filter (the
 continuous gain ``P R_c^{-1}`` corresponds to ``R_c = R dt``). With process noise
-``Q = q dt I`` (continuous intensity ``q I``) and ``H = I``:
+``Q`` and ``H = I``:
 
     predict:  x^- = F x^+,               P^- = F P^+ F^T + Q
     update:   S = P^- + R,  K = P^- S^{-1},
@@ -39,9 +39,15 @@ paper's ``k_g diag(grad p_KDE)`` is not positive definite. The floor keeps
 the strong correlation of successive KDE frames, which makes independent-frame
 filters overconfident.
 
-Process noise default. With ``Q = 0`` the covariance tends to 0 and with it the
-gain, and ``P^{-1}`` is unbounded, contrary to the theorems' assumption
-``c_1 I <= P^{-1} <= c_2 I``. A small ``q`` keeps ``P`` bounded below.
+Process noise. ``Q = q dt k I`` (density) and ``q dt k_g I`` (gradient), ``q`` in
+1 / s. With ``Q = 0`` the covariance tends to 0 and with it the gain, and
+``P^{-1}`` is unbounded, contrary to the theorems' assumption ``c_1 I <= P^{-1}
+<= c_2 I``. A positive ``q`` keeps ``P`` bounded below. The default ``q = 0.1 / s``
+models what a mean-field model misses: the swarm's finite-N density deviates
+from the mean field by fluctuations of the KDE's own size (variance ``~ k p``)
+that persist while the robots cross a kernel width, ``h / |v|`` or ``h^2 /
+sigma``, about 10 s at paper scale; a variance ``k`` renewed every ``1/q`` = 10 s
+is that error.
 """
 
 from __future__ import annotations
@@ -62,22 +68,21 @@ class FilterSettings:
     """Filter parameters (config block ``filter``).
 
     Attributes:
-        process_noise: ``q >= 0``: ``Q = q dt I`` per step; units of ``p^2`` per
-            second (1 / (length^4 s)) for the density filter and of ``(grad p)^2``
-            per second for the gradient filter.
+        process_noise: ``q >= 0`` (1 / s): ``Q = q dt k I`` per step for the density
+            filter and ``q dt k_g I`` for the gradient filter, i.e. the fraction of a
+            single KDE frame's variance (at unit density) that the model's error
+            adds per second. Default 0.1 / s, see the module docstring.
         r_scale: Multiplier ``> 0`` on the KDE noise constants in ``R`` and ``R_g``.
         r_floor: Density floor ``> 0`` in ``R`` (1 / length^2).
         initial_variance: ``P0 = initial_variance * k * I`` for the density and
             ``initial_variance * k_g * I`` for the gradient (dimensionless factor
             ``> 0``, in units of the measurement variance at unit density).
-        modes: Cosine modes per axis of the modal (fast) filters.
     """
 
-    process_noise: float = 1e-3
+    process_noise: float = 0.1
     r_scale: float = 1.0
     r_floor: float = 0.05
     initial_variance: float = 10.0
-    modes: int = 12
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.process_noise) and self.process_noise >= 0):
@@ -86,8 +91,6 @@ class FilterSettings:
             value = getattr(self, name)
             if not (np.isfinite(value) and value > 0):
                 raise ValueError(f"filter.{name} must be > 0, got {value}")
-        if self.modes < 2:
-            raise ValueError(f"filter.modes must be >= 2, got {self.modes}")
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,233 @@
+"""Fast filters: exact state propagation, local (diagonal) covariance structure.
+
+Why. The reference grid filters carry dense covariances at ``O(M^3)`` per step.
+Their state is cheap to propagate (one sparse Fokker-Planck solve); only the
+covariance is expensive. In this problem ``P0``, ``Q``, ``R`` and the measurement
+matrix ``H = I`` are all diagonal on the grid, and the transition ``F = (I - dt
+A)^{-1} = I + O(dt)`` couples a cell only to its neighbours and only weakly
+(``dt |A_ij| ~ 1e-3`` at paper scale). The covariance therefore stays nearly
+diagonal in the variables where the information arrives, and that is the
+structure kept here.
+
+Density filter (variance form, diagonal ``P = diag(d)``):
+
+    predict:  x^- = F x^+                        (exact, as in the reference)
+              d^- = (F1 o F1) d^+ + q dt k        (F1 = I + dt A; o = entrywise product)
+    update:   d^+ = 1 / (1 / d^- + 1 / r),        x^+ = x^- + (d^+ / r) (y - x^-),
+
+``r`` the diagonal of ``R``. ``diag(F D F^T) = (F o F) d`` exactly for diagonal
+``D``; ``F1`` is ``F`` to first order. Only the off-diagonal covariance that
+transport creates in one step is dropped. With ``A = 0`` the filter *is* the
+reference (a test checks it).
+
+Gradient filter (information form). Its state is an auxiliary unit-mass density
+``x_g`` with ``q_hat = G x_g`` (the integration operator ``I`` carried along: ``q``
+stays in the range of the grid gradient ``G`` and ``q_{n+1} = G F I(q_n)`` becomes
+``x_g^- = F x_g^+``). The reference's covariance, pulled back to ``x_g``, starts as
+``P0 = c0^{-1} (G^T G)^+`` and every update adds ``G^T W_g G`` to its inverse
+(``W_g = R_g^{-1}`` diagonal per gradient component). Both are of the form
+``Y = G^T diag(C) G``: information that is diagonal on the *gradient* grid. So
+
+    predict:  x_g^- = F x_g^+,   1/C^- = (F1 o F1) (1/C^+) + q dt k_g   (per component)
+    update:   C^+ = C^- + w_g,
+              x_g^+ = x_g^- + delta,   (G^T C^+ G) delta = G^T W_g (y_g - G x_g^-),  sum delta = 0,
+
+the last being the exact posterior mean for that prior: a weighted least-squares
+fit of the innovation by a gradient field, i.e. a variable-coefficient Poisson
+problem. It is solved by conjugate gradients preconditioned with a sparse LU of the
+same operator from an earlier step (the coefficients change slowly), refactored
+when the iteration count grows. With ``A = 0`` and ``q = 0`` the filter is the
+reference.
+
+Process noise ``Q = q dt k I`` (density) and ``q dt k_g I`` (gradient), as in the
+reference. The approximation error is measured, not assumed:
+:func:`harness.filters.compare.compare_filters` runs both forms in one closed loop.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from harness.filters.common import FilterSettings, MeasurementModel
+from harness.fokker_planck import FokkerPlanck, implicit_solve
+from harness.grid import Grid
+from harness.velocity import VelocityField
+
+
+def squared_transition(a: sp.csr_matrix, dt: float, d: np.ndarray) -> np.ndarray:
+    """``(F1 o F1) d`` with ``F1 = I + dt A``: the diagonal of ``F1 diag(d) F1^T``.
+
+    ``d`` may hold several columns.
+    """
+    sq = a.copy()
+    sq.data = (dt * sq.data) ** 2
+    diag = a.diagonal()
+    # (1 + dt a_ii)^2 on the diagonal instead of (dt a_ii)^2
+    boost = 1.0 + 2.0 * dt * diag
+    return sq @ d + (boost[:, None] * d if d.ndim == 2 else boost * d)
+
+
+class WeightedPoisson:
+    """Solves ``(G^T diag(C) G) delta = b`` with ``sum delta = 0`` for ``b`` orthogonal
+    to the constants, by preconditioned conjugate gradients.
+
+    ``G^T C G`` is singular only on the constants (the null space of ``G``); the
+    preconditioner is a sparse LU of the operator with cell 0 pinned, taken from an
+    earlier ``C`` and refactored when more than ``refactor_after`` iterations were
+    needed. The result is shifted to zero mean.
+    """
+
+    def __init__(self, grid: Grid, tol: float = 1e-10, refactor_after: int = 8) -> None:
+        self.grid = grid
+        self.g = grid.gradient_matrix.tocsr()
+        self.gt = self.g.T.tocsr()
+        self.tol = tol
+        self.refactor_after = refactor_after
+        self._lu: spla.SuperLU | None = None
+        self.iterations = 0
+        self.factorizations = 0
+
+    def _factorize(self, op: sp.csr_matrix) -> None:
+        pinned = op.tolil()
+        pinned[0, :] = 0.0
+        pinned[:, 0] = 0.0
+        pinned[0, 0] = 1.0
+        self._lu = spla.splu(pinned.tocsc())
+        self.factorizations += 1
+
+    def _precondition(self, r: np.ndarray) -> np.ndarray:
+        assert self._lu is not None
+        r = r.copy()
+        r[0] = 0.0
+        z = self._lu.solve(r)
+        return z - z.mean()
+
+    def solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The zero-mean solution of ``G^T diag(c) G delta = b``."""
+        op = (self.gt @ sp.diags(c) @ self.g).tocsr()
+        if self._lu is None:
+            self._factorize(op)
+        delta, its = _pcg(op, self._precondition, b, self.tol)
+        if its > self.refactor_after:
+            self._factorize(op)
+        self.iterations = its
+        return delta - delta.mean()
+
+
+def _pcg(op: sp.csr_matrix, precond, b: np.ndarray, tol: float, maxiter: int = 200) -> tuple[np.ndarray, int]:
+    """Preconditioned conjugate gradients from zero; returns ``(x, iterations)``."""
+    x = np.zeros_like(b)
+    r = b.copy()
+    b_norm = float(np.linalg.norm(b))
+    if b_norm == 0.0:
+        return x, 0
+    z = precond(r)
+    d = z.copy()
+    rz = float(r @ z)
+    for it in range(1, maxiter + 1):
+        ad = op @ d
+        step = rz / float(d @ ad)
+        x += step * d
+        r -= step * ad
+        if np.linalg.norm(r) <= tol * b_norm:
+            return x, it
+        z = precond(r)
+        rz_new = float(r @ z)
+        d = z + (rz_new / rz) * d
+        rz = rz_new
+    return x, maxiter
+
+
+class LocalFilters:
+    """Density and gradient filters with local covariances (see the module docstring).
+
+    Args:
+        grid: The grid.
+        sigma: Noise intensity (length^2 / s).
+        dt: Measurement period (s).
+        measurement: KDE measurement model (``k``, ``k_g``, settings).
+    """
+
+    def __init__(self, grid: Grid, sigma: float, dt: float, measurement: MeasurementModel) -> None:
+        self.grid, self.dt, self.measurement = grid, dt, measurement
+        self.settings: FilterSettings = measurement.settings
+        self.operator = FokkerPlanck(grid, sigma)
+        self.poisson = WeightedPoisson(grid)
+        self.x: np.ndarray | None = None  # p_hat, flattened
+        self.d: np.ndarray | None = None  # density variances
+        self.x_g: np.ndarray | None = None  # auxiliary density, q_hat = G x_g
+        self.c_g: np.ndarray | None = None  # gradient-grid information (2M)
+        self.d_prior: np.ndarray | None = None
+        self.c_g_prior: np.ndarray | None = None
+
+    def initialize(self, p_kde: np.ndarray, grad_kde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``x0 = p_KDE``, ``P0 = initial_variance k I``; ``x_g0`` the unit-mass density
+        whose grid gradient best fits ``grad p_KDE``, ``C0 = 1 / (initial_variance k_g)``."""
+        s, g = self.settings, self.grid
+        k, k_g = self.measurement.constants
+        self.x = np.array(p_kde, dtype=float).ravel()
+        self.d = np.full(g.size, s.initial_variance * k)
+        self.c_g = np.full(2 * g.size, 1.0 / (s.initial_variance * k_g))
+        fit = self.poisson.solve(np.ones(2 * g.size), self.poisson.gt @ np.asarray(grad_kde).ravel())
+        self.x_g = fit + 1.0 / g.area
+        self.d_prior, self.c_g_prior = self.d.copy(), self.c_g.copy()
+        return self.estimates
+
+    def step(
+        self,
+        p_kde: np.ndarray,
+        grad_kde: np.ndarray,
+        v_applied: VelocityField,
+        a: sp.csr_matrix | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Predict both filters under ``v_applied``, then update with the KDE.
+
+        ``a`` may pass ``A(v_applied)`` when the caller has it already.
+        """
+        assert self.x is not None and self.d is not None, "call initialize first"
+        assert self.x_g is not None and self.c_g is not None
+        g, s, dt = self.grid, self.settings, self.dt
+        k, k_g = self.measurement.constants
+        a = self.operator.matrix(v_applied) if a is None else a
+        # predict: states by the grid transition, variances by F1 o F1
+        states = implicit_solve(a, dt, np.column_stack([self.x, self.x_g]))
+        x, x_g = states[:, 0], states[:, 1]
+        q = s.process_noise * dt
+        d = squared_transition(a, dt, self.d) + q * k
+        var_g = squared_transition(a, dt, (1.0 / self.c_g).reshape(2, g.size).T).T.ravel()
+        c_g = 1.0 / (var_g + q * k_g)
+        self.d_prior, self.c_g_prior = d, c_g
+        # density update (diagonal, exact for the diagonal prior)
+        r = self.measurement.density_variance(p_kde)
+        self.d = 1.0 / (1.0 / d + 1.0 / r)
+        self.x = x + self.d / r * (np.asarray(p_kde).ravel() - x)
+        # gradient update: information adds, mean by the weighted Poisson solve
+        w_g = 1.0 / self.measurement.gradient_variance(p_kde)
+        self.c_g = c_g + w_g
+        innovation = np.asarray(grad_kde).ravel() - self.poisson.g @ x_g
+        self.x_g = x_g + self.poisson.solve(self.c_g, self.poisson.gt @ (w_g * innovation))
+        return self.estimates
+
+    @property
+    def estimates(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(p_hat, q_hat)`` on the grid, ``q_hat = G x_g``."""
+        assert self.x is not None and self.x_g is not None
+        g = self.grid
+        return self.x.reshape(g.shape), (self.poisson.g @ self.x_g).reshape(2, *g.shape)
+
+    @property
+    def trace_P(self) -> tuple[float, float]:  # noqa: N802
+        """L2 traces of the diagonal covariance models, ``sum(d) a`` and ``sum(1/C) a``
+        (``a`` the cell area; the gradient's is its local variance per gradient cell)."""
+        assert self.d is not None and self.c_g is not None
+        a = self.grid.cell_area
+        return float(self.d.sum()) * a, float((1.0 / self.c_g).sum()) * a
+
+    @property
+    def trace_Q(self) -> tuple[float, float]:  # noqa: N802
+        """L2 traces of ``Q`` per step, ``q dt k M a`` and ``q dt k_g 2M a``."""
+        k, k_g = self.measurement.constants
+        q = self.settings.process_noise * self.dt * self.grid.area
+        return q * k, 2 * q * k_g
