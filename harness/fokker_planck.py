@@ -190,8 +190,11 @@ class FokkerPlanck:
         """``A(v) p`` through the sparse matrix, shape ``(ny, nx)``."""
         return (self.matrix(v) @ p.ravel()).reshape(self.grid.shape)
 
-    def step(self, p: np.ndarray, v: VelocityField, dt: float) -> np.ndarray:
-        """One backward-Euler step ``(I - dt A(v)) p_next = p``.
+    def step(
+        self, p: np.ndarray, v: VelocityField, dt: float, a: sp.csr_matrix | None = None
+    ) -> np.ndarray:
+        """One backward-Euler step ``(I - dt A(v)) p_next = p`` (``a`` may pass a
+        precomputed ``A(v)``).
 
         Unconditionally stable, positivity preserving (M-matrix) and mass
         conserving for every ``dt > 0``; first order in time.
@@ -218,7 +221,7 @@ class FokkerPlanck:
             raise NumericalError("velocity field has non-finite values")
         if not np.isfinite(p).all():
             raise NumericalError("density has non-finite values before the step")
-        a = self.matrix(v)
+        a = self.matrix(v) if a is None else a
         p_next = implicit_solve(a, dt, p.ravel().astype(float)).reshape(self.grid.shape)
         check_density(self.grid, p, p_next, self.mass_tolerance)
         return p_next

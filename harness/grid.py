@@ -157,7 +157,8 @@ class Grid:
     @cached_property
     def gradient_matrix(self) -> sp.csr_matrix:
         """Sparse ``(2M, M)`` matrix ``G`` with ``G @ f.ravel() ==
-        gradient(f).ravel()``."""
+        gradient(f).ravel()``.
+        """
         dx_1d = _gradient_1d(self.nx, self.dx)
         dy_1d = _gradient_1d(self.ny, self.dy)
         gx = sp.kron(sp.identity(self.ny), dx_1d)

@@ -15,7 +15,10 @@ def smooth_velocity(grid, t, amp=0.2):
     return VelocityField.from_centres(
         amp
         * np.stack(
-            [np.sin(np.pi * y + t) * np.sin(np.pi * x), np.cos(np.pi * x - 0.5 * t) * np.sin(np.pi * y)]
+            [
+                np.sin(np.pi * y + t) * np.sin(np.pi * x),
+                np.cos(np.pi * x - 0.5 * t) * np.sin(np.pi * y),
+            ]
         )
     )
 

@@ -1,6 +1,7 @@
 """The paper's density and gradient filters on the grid (eqs. ``density filter``,
 ``density Riccati``, ``gradient filter``, ``gradient Riccati``): a dense reference
-form (:mod:`.reference`) and a fast modal form (:mod:`.modal`)."""
+form (:mod:`.reference`) and a fast modal form (:mod:`.modal`).
+"""
 
 from harness.filters.common import FilterSettings, MeasurementModel
 

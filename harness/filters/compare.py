@@ -110,5 +110,8 @@ def compare_filters(
             record(p_ref, q_ref, p_fast, q_fast)
             if progress and (k + 1) % 100 == 0:
                 r = [s[-1] for s in series]
-                print(f"step {k + 1}: ref err {r[0]:.4f}, gap {r[1]:.4f}; grad {r[2]:.3f}, gap {r[3]:.3f}", flush=True)
+                print(
+                    f"step {k + 1}: ref err {r[0]:.4f}, gap {r[1]:.4f}; grad {r[2]:.3f}, gap {r[3]:.3f}",
+                    flush=True,
+                )
     return Comparison(*(np.array(s) for s in series))

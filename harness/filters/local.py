@@ -116,7 +116,9 @@ class WeightedPoisson:
         return delta - delta.mean()
 
 
-def _pcg(op: sp.csr_matrix, precond, b: np.ndarray, tol: float, maxiter: int = 200) -> tuple[np.ndarray, int]:
+def _pcg(
+    op: sp.csr_matrix, precond, b: np.ndarray, tol: float, maxiter: int = 200
+) -> tuple[np.ndarray, int]:
     """Preconditioned conjugate gradients from zero; returns ``(x, iterations)``."""
     x = np.zeros_like(b)
     r = b.copy()
@@ -164,13 +166,16 @@ class LocalFilters:
 
     def initialize(self, p_kde: np.ndarray, grad_kde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``x0 = p_KDE``, ``P0 = initial_variance k I``; ``x_g0`` the unit-mass density
-        whose grid gradient best fits ``grad p_KDE``, ``C0 = 1 / (initial_variance k_g)``."""
+        whose grid gradient best fits ``grad p_KDE``, ``C0 = 1 / (initial_variance k_g)``.
+        """
         s, g = self.settings, self.grid
         k, k_g = self.measurement.constants
         self.x = np.array(p_kde, dtype=float).ravel()
         self.d = np.full(g.size, s.initial_variance * k)
         self.c_g = np.full(2 * g.size, 1.0 / (s.initial_variance * k_g))
-        fit = self.poisson.solve(np.ones(2 * g.size), self.poisson.gt @ np.asarray(grad_kde).ravel())
+        fit = self.poisson.solve(
+            np.ones(2 * g.size), self.poisson.gt @ np.asarray(grad_kde).ravel()
+        )
         self.x_g = fit + 1.0 / g.area
         self.d_prior, self.c_g_prior = self.d.copy(), self.c_g.copy()
         return self.estimates
@@ -218,15 +223,16 @@ class LocalFilters:
         return self.x.reshape(g.shape), (self.poisson.g @ self.x_g).reshape(2, *g.shape)
 
     @property
-    def trace_P(self) -> tuple[float, float]:  # noqa: N802
+    def trace_P(self) -> tuple[float, float]:
         """L2 traces of the diagonal covariance models, ``sum(d) a`` and ``sum(1/C) a``
-        (``a`` the cell area; the gradient's is its local variance per gradient cell)."""
+        (``a`` the cell area; the gradient's is its local variance per gradient cell).
+        """
         assert self.d is not None and self.c_g is not None
         a = self.grid.cell_area
         return float(self.d.sum()) * a, float((1.0 / self.c_g).sum()) * a
 
     @property
-    def trace_Q(self) -> tuple[float, float]:  # noqa: N802
+    def trace_Q(self) -> tuple[float, float]:
         """L2 traces of ``Q`` per step, ``q dt k M a`` and ``q dt k_g 2M a``."""
         k, k_g = self.measurement.constants
         q = self.settings.process_noise * self.dt * self.grid.area

@@ -155,13 +155,13 @@ class ReferenceDensityFilter:
         return self.kf.x.reshape(self.grid.shape)
 
     @property
-    def trace_P(self) -> float:  # noqa: N802
+    def trace_P(self) -> float:
         """``trace(P)`` after the last update, times the cell area (the L2 trace)."""
         assert self.kf is not None
         return float(np.trace(self.kf.P)) * self.grid.cell_area
 
     @property
-    def trace_Q(self) -> float:  # noqa: N802
+    def trace_Q(self) -> float:
         """``trace(Q)`` per step, times the cell area."""
         return self.q * self.grid.size * self.grid.cell_area
 
@@ -170,7 +170,8 @@ class ReferenceGradientFilter:
     """The gradient filter (eqs. ``gradient filter``, ``gradient Riccati``) on the grid.
 
     State ``q`` (``2M``: x then y components), ``F_g = G F_n G^+``, known input
-    ``u_n = G F_n 1/|Omega|`` (mass constraint, :class:`~harness.filters.common.Integrator`),
+    ``u_n = G F_n 1/|Omega|`` (mass constraint,
+    :class:`~harness.filters.common.Integrator`),
     ``Q = q dt k_g I``, ``y_g = grad p_KDE``, ``R_g = r_scale k_g diag(max(p_KDE, r_floor))``.
     """
 
@@ -211,9 +212,7 @@ class ReferenceGradientFilter:
         gf = self.G @ f
         return gf @ self.integrator.pinv, np.asarray(gf.sum(axis=1)).ravel() / self.grid.area
 
-    def step(
-        self, grad_kde: np.ndarray, p_kde: np.ndarray, v_applied: VelocityField
-    ) -> np.ndarray:
+    def step(self, grad_kde: np.ndarray, p_kde: np.ndarray, v_applied: VelocityField) -> np.ndarray:
         """Predict under ``v_applied``, then update with ``grad p_KDE`` (variance from ``p_KDE``)."""
         assert self.kf is not None, "call initialize first"
         if self.engine == "filterpy":
@@ -241,12 +240,12 @@ class ReferenceGradientFilter:
         return self.kf.x.reshape(2, *self.grid.shape)
 
     @property
-    def trace_P(self) -> float:  # noqa: N802
+    def trace_P(self) -> float:
         """``trace(P_g)`` after the last update, times the cell area."""
         assert self.kf is not None
         return float(np.trace(self.kf.P)) * self.grid.cell_area
 
     @property
-    def trace_Q(self) -> float:  # noqa: N802
+    def trace_Q(self) -> float:
         """``trace(Q_g)`` per step, times the cell area."""
         return self.q * 2 * self.grid.size * self.grid.cell_area

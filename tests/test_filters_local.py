@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+
+from harness.densities import GaussianMixture
+from harness.filters.common import FilterSettings, Integrator, MeasurementModel
+from harness.filters.compare import compare_filters
+from harness.filters.local import LocalFilters, WeightedPoisson, squared_transition
+from harness.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.velocity import VelocityField
+
+
+def test_squared_transition_is_the_diagonal_of_the_congruence(rng):
+    g = Grid.square(6)
+    a = FokkerPlanck(g, 1e-3).matrix(VelocityField.from_centres(rng.normal(size=(2, 6, 6))))
+    d = rng.random(g.size)
+    f1 = np.eye(g.size) + 0.02 * a.toarray()
+    np.testing.assert_allclose(squared_transition(a, 0.02, d), np.diag(f1 @ np.diag(d) @ f1.T))
+
+
+def test_weighted_poisson_solves_the_normal_equations(rng):
+    g = Grid(9, 7, 0.0, 1.0, 0.0, 0.8)
+    solver = WeightedPoisson(g)
+    gm = g.gradient_matrix.toarray()
+    for _ in range(3):  # lagged preconditioner reused across calls
+        c = rng.uniform(0.05, 5.0, 2 * g.size)
+        z = rng.normal(size=2 * g.size)
+        delta = solver.solve(c, gm.T @ (c * z))
+        expected = np.linalg.lstsq(np.sqrt(c)[:, None] * gm, np.sqrt(c) * z, rcond=None)[0]
+        expected -= expected.mean()
+        np.testing.assert_allclose(delta, expected, atol=1e-8 * np.abs(expected).max())
+
+
+def test_local_filters_equal_reference_without_transport():
+    """A = 0 (no velocity, no diffusion) and q = 0: the local covariance structure is
+    exact, so both filters reproduce the dense reference."""
+    rng = np.random.default_rng(3)
+    g = Grid.square(8)
+    settings = FilterSettings(process_noise=0.0, initial_variance=3.0)
+    model = MeasurementModel(500, 0.08, settings)
+    zero = VelocityField.zeros(g)
+    fast = LocalFilters(g, 0.0, 0.05, model)
+    ref_p = ReferenceDensityFilter(g, 0.0, 0.05, model)
+    ref_q = ReferenceGradientFilter(g, 0.0, 0.05, model, integrator=Integrator.build(g))
+    p = GaussianMixture(means=((0.3, 0.6),), stds=(0.15,), weights=(1,)).on_grid(g)
+    y, yg = p + 0.2 * rng.normal(size=g.shape), g.gradient(p) + rng.normal(size=(2, *g.shape))
+    fast.initialize(y, yg)
+    ref_p.initialize(y)
+    ref_q.initialize(yg)
+    for _ in range(20):
+        y = p + 0.2 * rng.normal(size=g.shape)
+        yg = g.gradient(p) + rng.normal(size=(2, *g.shape))
+        p_fast, q_fast = fast.step(y, yg, zero)
+        p_ref = ref_p.step(y, zero)
+        q_ref = ref_q.step(yg, y, zero)
+    np.testing.assert_allclose(p_fast, p_ref, atol=1e-10 * np.abs(p_ref).max())
+    np.testing.assert_allclose(np.diag(ref_p.kf.P), fast.d, rtol=1e-10)
+    # the reference keeps a tiny part outside the range of G; compare within it
+    gm = g.gradient_matrix.toarray()
+    q_ref_in_range = gm @ (np.linalg.pinv(gm) @ q_ref.ravel())
+    np.testing.assert_allclose(q_fast.ravel(), q_ref_in_range, atol=1e-8 * np.abs(q_ref).max())
+
+
+def test_fast_filters_track_reference_in_closed_loop():
+    """Accuracy bar on a short closed loop (n = 12, 150 steps): the fast estimate's
+    distance to the reference estimate stays below 10 % of the reference's own
+    error against the mean-field truth, density and gradient."""
+    c = compare_filters(n=12, steps=150, seed=2)
+    worst_p, worst_q = c.ratios(skip=1)
+    assert worst_p < 0.1, worst_p
+    assert worst_q < 0.1, worst_q
+
+
+@pytest.mark.slow
+def test_fast_filters_track_reference_at_paper_grid():
+    c = compare_filters(n=30, steps=300, seed=0)
+    worst_p, worst_q = c.ratios(skip=1)
+    assert worst_p < 0.1 and worst_q < 0.1, (worst_p, worst_q)
