@@ -151,13 +151,12 @@ def bench_filters() -> bool:
         else:
             met = value >= target
             ok &= met
-            print(
-                f"  {name:<52s} {value:9.1f} /s   target >= {target:g} /s   {'OK' if met else 'MISSED'}"
-            )
+            verdict = "OK" if met else "MISSED"
+            print(f"  {name:<52s} {value:9.1f} /s   target >= {target:g} /s   {verdict}")
     met = ratio >= 100
-    print(
-        f"  {'speed-up of fast over filterpy engine, n = 30':<52s} {ratio:9.0f} x    target >= 100 x   {'OK' if met else 'MISSED'}"
-    )
+    name = "speed-up of fast over filterpy engine, n = 30"
+    verdict = "OK" if met else "MISSED"
+    print(f"  {name:<52s} {ratio:9.0f} x    target >= 100 x   {verdict}")
     return ok and met
 
 

@@ -111,7 +111,8 @@ def compare_filters(
             if progress and (k + 1) % 100 == 0:
                 r = [s[-1] for s in series]
                 print(
-                    f"step {k + 1}: ref err {r[0]:.4f}, gap {r[1]:.4f}; grad {r[2]:.3f}, gap {r[3]:.3f}",
+                    f"step {k + 1}: ref err {r[0]:.4f}, gap {r[1]:.4f}; "
+                    f"grad {r[2]:.3f}, gap {r[3]:.3f}",
                     flush=True,
                 )
     return Comparison(*(np.array(s) for s in series))

@@ -213,7 +213,8 @@ class ReferenceGradientFilter:
         return gf @ self.integrator.pinv, np.asarray(gf.sum(axis=1)).ravel() / self.grid.area
 
     def step(self, grad_kde: np.ndarray, p_kde: np.ndarray, v_applied: VelocityField) -> np.ndarray:
-        """Predict under ``v_applied``, then update with ``grad p_KDE`` (variance from ``p_KDE``)."""
+        """Predict under ``v_applied``, then update with ``grad p_KDE`` (its variance
+        from ``p_KDE``)."""
         assert self.kf is not None, "call initialize first"
         if self.engine == "filterpy":
             fg, u = self.transition(v_applied)
