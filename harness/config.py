@@ -88,6 +88,85 @@ class MeanFieldConf:
     figures_dir: str = "figures"
 
 
+@dataclass
+class PlantConf:
+    """``name``: ``agents`` (robots, KDE measurements) or ``meanfield`` (no robots;
+    measurements are the truth plus seeded Gaussian noise of the KDE's variance)."""
+
+    name: str = "agents"
+
+
+@dataclass
+class AgentsConf:
+    """``n``: number of robots ``N``."""
+
+    n: int = 1024
+
+
+@dataclass
+class KDEConf:
+    """``bandwidth``: kernel standard deviation ``h`` (length); ``mirror``: wall images;
+    ``method``: ``auto`` | ``exact`` | ``binned``."""
+
+    bandwidth: float = 0.04
+    mirror: bool = True
+    method: str = "auto"
+
+
+@dataclass
+class FilterConf:
+    """``method``: ``local`` (fast) | ``reference`` (dense) | ``filterpy`` (dense,
+    filterpy engine); the rest as :class:`harness.filters.common.FilterSettings`
+    (``process_noise`` in 1 / s, ``r_floor`` in 1 / length^2)."""
+
+    method: str = "local"
+    process_noise: float = 0.1
+    r_scale: float = 1.0
+    r_floor: float = 0.05
+    initial_variance: float = 10.0
+
+
+@dataclass
+class EstimatorConf:
+    """``name``: ``filters`` | ``kde`` | ``exact`` | ``injected``; ``delta``: size of
+    the injected error (1 / length); ``omega``: its rotation rate (rad / s);
+    ``modes``: its highest cosine mode per axis."""
+
+    name: str = "filters"
+    delta: float = 0.0
+    omega: float = 0.1
+    modes: int = 4
+
+
+@dataclass
+class LogConf:
+    """``field_every``/``positions_every``: steps between field / position messages;
+    ``progress``: ``auto`` (a bar when stderr is a terminal) | ``on`` | ``off``."""
+
+    field_every: int = 10
+    positions_every: int = 10
+    progress: str = "auto"
+
+
+@dataclass
+class ClosedLoopConf:
+    """The closed-loop experiment (``python -m experiments.closed_loop``)."""
+
+    seed: int = 0
+    grid: GridConf = field(default_factory=GridConf)
+    plant: PlantConf = field(default_factory=PlantConf)
+    agents: AgentsConf = field(default_factory=AgentsConf)
+    dynamics: DynamicsConf = field(default_factory=DynamicsConf)
+    control: ControlConf = field(default_factory=ControlConf)
+    sim: SimConf = field(default_factory=SimConf)
+    kde: KDEConf = field(default_factory=KDEConf)
+    filter: FilterConf = field(default_factory=FilterConf)
+    estimator: EstimatorConf = field(default_factory=EstimatorConf)
+    target: DensityConf = field(default_factory=DensityConf)
+    init: DensityConf = field(default_factory=lambda: DensityConf(kind="box"))
+    log: LogConf = field(default_factory=LogConf)
+
+
 def density_spec(conf: Any) -> dict:
     """The plain mapping :func:`harness.densities.make_density` takes, from a
     :class:`DensityConf` (only the keys its ``kind`` uses).
@@ -110,5 +189,6 @@ def register_configs() -> None:
     """Register the schemas with Hydra's ConfigStore."""
     cs = ConfigStore.instance()
     cs.store(name="meanfield_schema", node=MeanFieldConf)
+    cs.store(name="closed_loop_schema", node=ClosedLoopConf)
     cs.store(group="target", name="density_schema", node=DensityConf)
     cs.store(group="init", name="density_schema", node=DensityConf)

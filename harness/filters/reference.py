@@ -214,7 +214,8 @@ class ReferenceGradientFilter:
 
     def step(self, grad_kde: np.ndarray, p_kde: np.ndarray, v_applied: VelocityField) -> np.ndarray:
         """Predict under ``v_applied``, then update with ``grad p_KDE`` (its variance
-        from ``p_KDE``)."""
+        from ``p_KDE``).
+        """
         assert self.kf is not None, "call initialize first"
         if self.engine == "filterpy":
             fg, u = self.transition(v_applied)

@@ -1,0 +1,171 @@
+"""The paper's Figures 1 and 2 and an animation, from run logs only.
+
+    python -m analysis.figures RUN_DIR [RUN_DIR ...] [--out figures] [--no-gif]
+
+* ``fig1_<run>.png/.pdf`` (paper's Fig. 1): rows swarm, ``p_hat`` and velocity field,
+  columns four logged times (0, about T/10, T/3 and T).
+* ``fig2.png/.pdf`` (paper's Fig. 2): the target ``p_*`` and ``||p_hat - p_*||`` over
+  time on a log scale (every run overlaid; ``||p - p_*||`` of the mean-field truth
+  dashed).
+* ``run_<run>.gif``: the swarm over ``p_*`` and ``p_hat`` through the run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+
+from analysis.load import LogError, RunLog, load_run  # noqa: E402
+
+
+def _save(fig, out: Path, stem: str) -> list[Path]:
+    paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
+    for p in paths:
+        fig.savefig(p, dpi=120)
+    plt.close(fig)
+    return paths
+
+
+def _name(run: RunLog) -> str:
+    return run.path.parent.name or "run"
+
+
+def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
+    """Swarm, ``p_hat`` and ``v`` at four times."""
+    p_hat = run.fields["/fields/p_hat"]
+    vel = run.fields["/fields/velocity"]
+    target = run.fields["/fields/p_target"].values[0, 0]
+    t_end = float(p_hat.t[-1])
+    times = [0.0, t_end / 10, t_end / 3, t_end]
+    fig, axes = plt.subplots(3, 4, figsize=(13, 9.6), constrained_layout=True)
+    vmax = float(np.nanmax(p_hat.values))
+    extent = p_hat.extent()
+    xc, yc = p_hat.centres()
+    step = max(1, len(xc) // 20)
+    for col, t in enumerate(times):
+        ax = axes[0, col]
+        if run.positions:
+            i = int(np.argmin(np.abs(run.positions_t - t)))
+            pts = run.positions[i]
+            ax.contour(xc, yc, target, levels=6, colors="0.75", linewidths=0.6)
+            ax.scatter(pts[:, 0], pts[:, 1], s=1.5, c="k", alpha=0.7, linewidths=0)
+            ax.set_title(f"swarm, t = {run.positions_t[i]:.1f} s")
+        else:
+            ax.text(0.5, 0.5, "mean-field plant\n(no robots)", ha="center", va="center")
+            ax.set_title(f"t = {t:.1f} s")
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        ax.set_aspect("equal")
+        ts, field = p_hat.at(t)
+        im = axes[1, col].imshow(field[0], origin="lower", extent=extent, vmin=0, vmax=vmax)
+        axes[1, col].set_title(rf"$\hat p$, t = {ts:.1f} s")
+        tv, v = vel.at(t)
+        speed = np.hypot(v[0], v[1])
+        q = axes[2, col].quiver(
+            xc[::step], yc[::step], v[0][::step, ::step], v[1][::step, ::step],
+            speed[::step, ::step], cmap="magma",
+        )
+        axes[2, col].set_aspect("equal")
+        axes[2, col].set_xlim(extent[0], extent[1])
+        axes[2, col].set_ylim(extent[2], extent[3])
+        axes[2, col].set_title(f"v, t = {tv:.1f} s (max {speed.max():.2g})")
+        fig.colorbar(q, ax=axes[2, col], shrink=0.7, label="speed (length/s)")
+    fig.colorbar(im, ax=axes[1, :], shrink=0.8, label=r"$\hat p$ (1/length$^2$)")
+    fig.suptitle("Swarm (top), density estimate (middle), velocity field (bottom)")
+    return _save(fig, out, stem)
+
+
+def figure2(runs: list[RunLog], out: Path) -> list[Path]:
+    """Target and convergence error of every run."""
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    tgt = runs[0].fields["/fields/p_target"]
+    im = ax0.imshow(tgt.values[0, 0], origin="lower", extent=tgt.extent())
+    ax0.set_title(r"target $p_*$")
+    fig.colorbar(im, ax=ax0, label="1/length$^2$")
+    for run in runs:
+        m = run.metrics
+        (line,) = ax1.semilogy(m["t"], m["phat_target_l2"], label=rf"$\|\hat p - p_*\|$ {_name(run)}")
+        ax1.semilogy(m["t"], m["phi_l2"], ls="--", lw=0.9, color=line.get_color(),
+                     label=rf"$\|p - p_*\|$ (mean-field) {_name(run)}")
+    ax1.set_xlabel("t (s)")
+    ax1.set_ylabel("L2 norm (1/length)")
+    ax1.set_title("convergence error")
+    ax1.grid(True, which="both", alpha=0.3)
+    ax1.legend(fontsize=7)
+    return _save(fig, out, "fig2")
+
+
+def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:
+    """GIF of the swarm over the target and of ``p_hat``."""
+    p_hat = run.fields["/fields/p_hat"]
+    target = run.fields["/fields/p_target"].values[0, 0]
+    frames = np.unique(np.linspace(0, len(p_hat.t) - 1, min(max_frames, len(p_hat.t))).astype(int))
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(8, 4), constrained_layout=True)
+    extent = p_hat.extent()
+    xc, yc = p_hat.centres()
+    ax0.contour(xc, yc, target, levels=6, colors="0.7", linewidths=0.6)
+    scat = ax0.scatter([], [], s=1.5, c="k", linewidths=0)
+    ax0.set_xlim(extent[0], extent[1])
+    ax0.set_ylim(extent[2], extent[3])
+    ax0.set_aspect("equal")
+    im = ax1.imshow(p_hat.values[0, 0], origin="lower", extent=extent, vmin=0,
+                    vmax=float(np.nanmax(p_hat.values)))
+    title = fig.suptitle("")
+
+    def draw(k: int):
+        t = p_hat.t[frames[k]]
+        if run.positions:
+            i = int(np.argmin(np.abs(run.positions_t - t)))
+            scat.set_offsets(run.positions[i])
+        im.set_data(p_hat.values[frames[k], 0])
+        title.set_text(f"t = {t:.1f} s: swarm over p* contours (left), p_hat (right)")
+        return scat, im, title
+
+    anim = FuncAnimation(fig, draw, frames=len(frames), blit=False)
+    path = out / f"{stem}.gif"
+    anim.save(path, writer=PillowWriter(fps=10))
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Write the figures of the given runs; print their paths."""
+    parser = argparse.ArgumentParser(description="Figures 1 and 2 and a GIF from run logs.")
+    parser.add_argument("runs", nargs="+", type=Path, help="run directories or run.mcap files")
+    parser.add_argument("--out", type=Path, default=Path("figures"), help="output directory")
+    parser.add_argument("--no-gif", action="store_true", help="skip the animation")
+    args = parser.parse_args(argv)
+    try:
+        runs = [load_run(p) for p in args.runs]
+    except LogError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    for run in runs:
+        missing = {"/fields/p_hat", "/fields/velocity", "/fields/p_target"} - set(run.fields)
+        if missing or "phat_target_l2" not in run.metrics:
+            print(f"error: {run.path} lacks {sorted(missing) or ['/metrics']}", file=sys.stderr)
+            return 2
+    args.out.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    single = len(runs) == 1
+    for run in runs:
+        stem = "fig1" if single else f"fig1_{_name(run)}"
+        written += figure1(run, args.out, stem)
+        if not args.no_gif:
+            written.append(animation(run, args.out, "run" if single else f"run_{_name(run)}"))
+    written += figure2(runs, args.out)
+    for p in written:
+        print(p)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

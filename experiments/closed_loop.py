@@ -1,0 +1,41 @@
+"""The paper's closed-loop experiment as a Hydra app.
+
+    python -m experiments.closed_loop [overrides]        # e.g. agents.n=4096 grid.n=64
+    python -m experiments.closed_loop -m agents.n=256,1024,4096
+
+Writes ``run.mcap`` into the Hydra run (or job) directory; see ``harness/mcap_log.py``
+for its contract and ``python -m analysis.figures RUN_DIR`` for the figures.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from harness.config import register_configs
+from harness.run import run
+
+register_configs()
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
+def main(cfg: DictConfig) -> None:
+    """Run one closed loop and print where its log is."""
+    out = Path(HydraConfig.get().runtime.output_dir)
+    result = run(cfg, out)
+    m = result.last_metrics
+    print(
+        f"{result.state} after {result.steps} steps in {result.wall_s:.1f} s wall: "
+        f"||p_hat - p*|| = {m.get('phat_target_l2', float('nan')):.4g} 1/length, "
+        f"||p - p*|| = {m.get('phi_l2', float('nan')):.4g} 1/length at t = {m.get('t', 0):.2f} s"
+    )
+    if result.reason:
+        print(f"reason: {result.reason}")
+    print(f"log: {result.log_path} ({result.log_path.stat().st_size / 1e6:.1f} MB)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,231 @@
+"""The MCAP log of a run: the contract analysis scripts and users rely on.
+
+File ``run.mcap`` (zstd chunks). ``log_time`` and ``publish_time`` are the
+simulated time in integer nanoseconds (``round(t * 1e9)``), so reruns give identical
+files apart from the provenance record.
+
+Topics (a topic that does not apply to the plant or estimator is absent):
+
+* ``/fields/p_target`` (once, at t = 0), ``/fields/p_true``, ``/fields/p_kde``,
+  ``/fields/p_hat``: ``foxglove.Grid`` with one float32 field ``p`` (1 / length^2);
+* ``/fields/grad_kde``, ``/fields/grad_hat``: fields ``gx``, ``gy`` (1 / length^3);
+* ``/fields/velocity``: fields ``vx``, ``vy`` (length / s), the cell-centre values;
+* ``/swarm/positions``: ``foxglove.PointCloud`` with float32 ``x, y, z`` (z = 0);
+* ``/metrics``: JSON (schema encoding ``jsonschema``), one message per step, keys of
+  :func:`harness.loop.metrics` (``null`` where not applicable).
+
+Grids follow ``foxglove.Grid``: ``column_count = nx`` cells along x, rows along y
+starting at the pose origin ``(x0, y0, 0)``, ``cell_size = (dx, dy)``, little-endian
+float32 values interleaved per cell, frame ``world``. Field messages every
+``field_every`` steps (and at the last step), positions every ``positions_every``.
+
+Metadata records: ``config`` (key ``yaml``: the resolved config), ``provenance``
+(git commit and dirty flag, package versions, Python version, seed, host, start
+time; the only wall-clock values in the file) and ``status`` (key ``state``:
+``completed`` | ``aborted`` | ``diverged``, key ``reason``), written just before the
+file is finished. :meth:`McapLogger.finalize` always runs (the run loop calls it in a
+``finally`` block), so the summary and index are written also after an exception.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
+from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from mcap.writer import CompressionType
+from mcap.writer import Writer as McapWriter
+from mcap_protobuf.schema import register_schema
+
+from harness.grid import Grid
+from harness.loop import StepRecord
+
+METRIC_KEYS = (
+    "t",
+    "phi_l2",
+    "phat_target_l2",
+    "eps_l2",
+    "eps_g_l2",
+    "kde_l2",
+    "lyapunov",
+    "mass",
+    "trace_P",
+    "trace_Q",
+    "trace_P_grad",
+    "trace_Q_grad",
+)
+
+METRICS_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "densityloop.Metrics",
+    "description": "Per-step metrics of a densityloop run; units in the README.",
+    "type": "object",
+    "properties": {
+        key: ({"type": "number"} if key in ("t", "phi_l2", "phat_target_l2", "eps_l2",
+                                             "eps_g_l2", "lyapunov", "mass")
+              else {"type": ["number", "null"]})
+        for key in METRIC_KEYS
+    },
+    "required": list(METRIC_KEYS),
+}
+
+FIELD_TOPICS = {
+    "/fields/p_true": ("p",),
+    "/fields/p_kde": ("p",),
+    "/fields/p_hat": ("p",),
+    "/fields/grad_kde": ("gx", "gy"),
+    "/fields/grad_hat": ("gx", "gy"),
+    "/fields/velocity": ("vx", "vy"),
+    "/fields/p_target": ("p",),
+}
+
+
+def time_ns(t: float) -> int:
+    """Simulated time ``t`` (s) as integer nanoseconds."""
+    return round(t * 1e9)
+
+
+def grid_message(grid: Grid, t: float, names: tuple[str, ...], values: np.ndarray) -> GridMsg:
+    """A ``foxglove.Grid`` holding ``values`` (shape ``(len(names), ny, nx)``) as float32."""
+    msg = GridMsg()
+    ns = time_ns(t)
+    msg.timestamp.seconds, msg.timestamp.nanos = divmod(ns, 1_000_000_000)
+    msg.frame_id = "world"
+    msg.pose.position.x, msg.pose.position.y = grid.x0, grid.y0
+    msg.pose.orientation.w = 1.0
+    msg.column_count = grid.nx
+    msg.cell_size.x, msg.cell_size.y = grid.dx, grid.dy
+    k = len(names)
+    msg.cell_stride = 4 * k
+    msg.row_stride = 4 * k * grid.nx
+    for i, name in enumerate(names):
+        msg.fields.add(name=name, offset=4 * i, type=PackedElementField.FLOAT32)
+    data = np.ascontiguousarray(np.moveaxis(values.reshape(k, grid.ny, grid.nx), 0, -1), "<f4")
+    msg.data = data.tobytes()
+    return msg
+
+
+def points_message(t: float, positions: np.ndarray) -> PointCloud:
+    """A ``foxglove.PointCloud`` of the robots (float32 x, y, z = 0)."""
+    msg = PointCloud()
+    ns = time_ns(t)
+    msg.timestamp.seconds, msg.timestamp.nanos = divmod(ns, 1_000_000_000)
+    msg.frame_id = "world"
+    msg.pose.orientation.w = 1.0
+    msg.point_stride = 12
+    for i, name in enumerate("xyz"):
+        msg.fields.add(name=name, offset=4 * i, type=PackedElementField.FLOAT32)
+    pts = np.zeros((positions.shape[1], 3), dtype="<f4")
+    pts[:, 0], pts[:, 1] = positions[0], positions[1]
+    msg.data = pts.tobytes()
+    return msg
+
+
+def _json_number(x: Any) -> float | None:
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+class McapLogger:
+    """Writes a run's ``run.mcap`` (see the module docstring).
+
+    Args:
+        path: Output file.
+        grid: The grid.
+        config_yaml: The resolved config as YAML text.
+        provenance: String key-value pairs for the ``provenance`` record.
+        field_every: Steps between field messages (``>= 1``).
+        positions_every: Steps between position messages (``>= 1``).
+        total_steps: Number of steps of the run (the last one always logs fields).
+    """
+
+    def __init__(
+        self,
+        path: Path,
+        grid: Grid,
+        config_yaml: str,
+        provenance: dict[str, str],
+        field_every: int,
+        positions_every: int,
+        total_steps: int,
+    ) -> None:
+        self.path, self.grid = Path(path), grid
+        self.field_every, self.positions_every = field_every, positions_every
+        self.total_steps = total_steps
+        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in finalize)
+        self._writer = McapWriter(self._file, compression=CompressionType.ZSTD)
+        self._writer.start(profile="", library="densityloop")
+        self._channels: dict[str, int] = {}
+        self._grid_schema = register_schema(self._writer, GridMsg)
+        self._points_schema = register_schema(self._writer, PointCloud)
+        self._metrics_schema = self._writer.register_schema(
+            name="densityloop.Metrics",
+            encoding="jsonschema",
+            data=json.dumps(METRICS_SCHEMA).encode(),
+        )
+        self._writer.add_metadata("config", {"yaml": config_yaml})
+        self._writer.add_metadata("provenance", provenance)
+        self._finished = False
+
+    def _channel(self, topic: str, schema_id: int, encoding: str) -> int:
+        if topic not in self._channels:
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding=encoding, schema_id=schema_id
+            )
+        return self._channels[topic]
+
+    def _write(self, topic: str, t: float, data: bytes, schema_id: int, encoding: str) -> None:
+        ns = time_ns(t)
+        self._writer.add_message(
+            channel_id=self._channel(topic, schema_id, encoding),
+            log_time=ns,
+            publish_time=ns,
+            data=data,
+        )
+
+    def write_grid(self, topic: str, t: float, values: np.ndarray) -> None:
+        """A field message on ``topic`` (fields named as in :data:`FIELD_TOPICS`)."""
+        msg = grid_message(self.grid, t, FIELD_TOPICS[topic], values)
+        self._write(topic, t, msg.SerializeToString(), self._grid_schema, "protobuf")
+
+    def write_target(self, p_target: np.ndarray) -> None:
+        """``/fields/p_target`` at t = 0."""
+        self.write_grid("/fields/p_target", 0.0, p_target)
+
+    def handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
+        """Log one step: metrics always, fields and positions at their rates."""
+        payload = {k: _json_number(metric_values.get(k)) for k in METRIC_KEYS}
+        self._write(
+            "/metrics", rec.t, json.dumps(payload).encode(), self._metrics_schema, "json"
+        )
+        last = rec.step == self.total_steps
+        if rec.step % self.field_every == 0 or last:
+            t = rec.t
+            self.write_grid("/fields/p_true", t, rec.p_true)
+            if rec.p_meas is not None and rec.grad_meas is not None:
+                self.write_grid("/fields/p_kde", t, rec.p_meas)
+                self.write_grid("/fields/grad_kde", t, rec.grad_meas)
+            self.write_grid("/fields/p_hat", t, rec.estimate.p_hat)
+            self.write_grid("/fields/grad_hat", t, rec.estimate.q_hat)
+            self.write_grid("/fields/velocity", t, rec.velocity.centres)
+        if rec.positions is not None and (rec.step % self.positions_every == 0 or last):
+            msg = points_message(rec.t, rec.positions)
+            self._write("/swarm/positions", rec.t, msg.SerializeToString(), self._points_schema, "protobuf")
+
+    def finalize(self, state: str, reason: str = "") -> None:
+        """Write the ``status`` record, the summary and index, and close the file."""
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            self._writer.add_metadata("status", {"state": state, "reason": reason})
+            self._writer.finish()
+        finally:
+            self._file.close()

@@ -1,0 +1,227 @@
+"""Build a closed loop from a config and run it to a finished ``run.mcap``.
+
+The loop (:mod:`harness.loop`) advances the plant, the estimator and the law; the
+trackers observe each step and never steer: metrics, the divergence guard and the
+MCAP logger. Whatever happens, the log is finalised with a ``status`` record:
+``completed``; ``diverged`` (non-finite values, negative density or lost mass,
+with the reason); or ``aborted`` (an exception, Ctrl-C or SIGTERM, re-raised after
+the log is closed).
+"""
+
+from __future__ import annotations
+
+import datetime as dt_
+import importlib.metadata
+import os
+import platform
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+from threadpoolctl import threadpool_limits
+from tqdm.auto import tqdm
+
+from harness.agents import Swarm
+from harness.config import density_spec
+from harness.densities import Target, make_density
+from harness.estimators import (
+    Estimator,
+    ExactEstimator,
+    FilterEstimator,
+    InjectedEstimator,
+    KDEEstimator,
+)
+from harness.filters.common import FilterSettings
+from harness.fokker_planck import NumericalError
+from harness.grid import Grid
+from harness.kde import KDE
+from harness.loop import ClosedLoop, ControlLaw, metrics
+from harness.mcap_log import McapLogger
+
+PACKAGES = (
+    "numpy", "scipy", "numba", "filterpy", "mcap", "mcap-protobuf-support",
+    "foxglove-schemas-protobuf", "hydra-core", "omegaconf", "densityloop",
+)
+
+
+class Terminated(Exception):
+    """Raised in the run loop when the process receives SIGTERM."""
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """Outcome of :func:`run`: final state and reason, steps done, wall time (s),
+    the log's path and the last metrics."""
+
+    state: str
+    reason: str
+    steps: int
+    wall_s: float
+    log_path: Path
+    last_metrics: dict[str, Any]
+
+
+def provenance(seed: int) -> dict[str, str]:
+    """Git commit and dirty flag, package versions, Python, seed, host, start time."""
+    root = Path(__file__).resolve().parents[1]
+
+    def git(*args: str) -> str:
+        try:
+            out = subprocess.run(
+                ["git", *args], cwd=root, capture_output=True, text=True, timeout=10
+            )
+            return out.stdout.strip() if out.returncode == 0 else "unknown"
+        except (OSError, subprocess.SubprocessError):
+            return "unknown"
+
+    status = git("status", "--porcelain")
+    info = {
+        "git_commit": git("rev-parse", "HEAD"),
+        "git_dirty": "unknown" if status == "unknown" else str(bool(status)).lower(),
+        "python": sys.version.split()[0],
+        "seed": str(seed),
+        "host": platform.node(),
+        "start_time_utc": dt_.datetime.now(dt_.UTC).isoformat(timespec="seconds"),
+    }
+    for name in PACKAGES:
+        try:
+            info[f"version_{name}"] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            info[f"version_{name}"] = "not installed"
+    return info
+
+
+def build_loop(cfg: DictConfig, rng: np.random.Generator) -> tuple[ClosedLoop, Target]:
+    """Grid, target, plant, KDE, estimator and law from a closed-loop config."""
+    grid = Grid.square(cfg.grid.n, cfg.grid.length)
+    target = Target.from_density(grid, make_density(density_spec(cfg.target)))
+    init = make_density(density_spec(cfg.init))
+    sigma, dt = cfg.dynamics.sigma, cfg.sim.dt
+    swarm = kde = None
+    if cfg.plant.name == "agents":
+        swarm = Swarm(grid, init.sample(cfg.agents.n, grid, rng), sigma)
+        kde = KDE(grid, cfg.kde.bandwidth, mirror=cfg.kde.mirror, method=cfg.kde.method)
+    elif cfg.plant.name != "meanfield":
+        raise ValueError(f"plant must be agents or meanfield, got {cfg.plant.name!r}")
+    estimator: Estimator
+    name = cfg.estimator.name
+    if name == "filters":
+        settings = FilterSettings(
+            process_noise=cfg.filter.process_noise,
+            r_scale=cfg.filter.r_scale,
+            r_floor=cfg.filter.r_floor,
+            initial_variance=cfg.filter.initial_variance,
+        )
+        estimator = FilterEstimator(
+            grid, sigma, dt, cfg.agents.n, cfg.kde.bandwidth, settings, cfg.filter.method
+        )
+    elif name == "kde":
+        estimator = KDEEstimator()
+    elif name == "exact":
+        estimator = ExactEstimator(grid)
+    elif name == "injected":
+        estimator = InjectedEstimator(
+            grid,
+            cfg.estimator.delta,
+            np.random.default_rng([cfg.seed, 1]),
+            omega=cfg.estimator.omega,
+            modes=cfg.estimator.modes,
+        )
+    else:
+        raise ValueError(f"estimator must be filters, kde, exact or injected, got {name!r}")
+    options = {}
+    if cfg.control.law == "heat":
+        options = {
+            "density_floor": cfg.control.density_floor,
+            "noise_compensation": cfg.control.noise_compensation,
+        }
+    law = ControlLaw(cfg.control.law, target, cfg.control.alpha, sigma, **options)
+    loop = ClosedLoop(
+        grid, target, init.on_grid(grid), estimator, law, sigma, dt, rng,
+        swarm=swarm, kde=kde, n_robots=cfg.agents.n, bandwidth=cfg.kde.bandwidth,
+    )
+    return loop, target
+
+
+def _raise_terminated(signum: int, frame: Any) -> None:
+    raise Terminated(f"received signal {signum}")
+
+
+def run(cfg: DictConfig, out_dir: Path) -> RunResult:
+    """Run the closed loop of ``cfg`` and write ``out_dir / 'run.mcap'``.
+
+    Raises:
+        KeyboardInterrupt, Terminated, Exception: re-raised after the log is
+            finalised with status ``aborted``.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(cfg.seed)
+    steps = round(cfg.sim.t_final / cfg.sim.dt)
+    loop, target = build_loop(cfg, rng)
+    logger = McapLogger(
+        out_dir / "run.mcap",
+        loop.grid,
+        OmegaConf.to_yaml(cfg, resolve=True),
+        provenance(cfg.seed),
+        cfg.log.field_every,
+        cfg.log.positions_every,
+        steps,
+    )
+    progress = {"auto": None, "on": True, "off": False}.get(cfg.log.progress, None)
+    bar = tqdm(
+        total=steps, unit="step", disable=(not sys.stderr.isatty()) if progress is None else not progress
+    )
+    state, reason, done, last = "aborted", "", 0, {}
+    previous = None
+    if hasattr(signal, "SIGTERM") and threading_is_main():
+        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    t0 = time.perf_counter()
+    try:
+        with threadpool_limits(1):
+            logger.write_target(target.p)
+            rec = loop.start()
+            last = metrics(loop.grid, target, rec)
+            logger.handle(rec, last)
+            for _ in range(steps):
+                rec = loop.step()
+                done = rec.step
+                last = metrics(loop.grid, target, rec)
+                logger.handle(rec, last)
+                if done % 50 == 0 or done == steps:
+                    bar.set_postfix_str(
+                        f"t={rec.t:.2f} s |p_hat-p*|={last['phat_target_l2']:.3e}", refresh=False
+                    )
+                    bar.update(done - bar.n)
+        state = "completed"
+    except NumericalError as err:
+        state, reason = "diverged", f"step {done + 1}: {err}"
+    except (KeyboardInterrupt, Terminated) as err:
+        reason = f"interrupted at step {done}: {type(err).__name__} {err}".strip()
+        raise
+    except Exception as err:
+        reason = f"step {done}: {type(err).__name__}: {err}"
+        raise
+    finally:
+        bar.close()
+        logger.finalize(state, reason)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+    return RunResult(state, reason, done, time.perf_counter() - t0, logger.path, last)
+
+
+def threading_is_main() -> bool:
+    """Signal handlers can only be installed from the main thread."""
+    import threading
+
+    return threading.current_thread() is threading.main_thread()
+
+
+def env_flag(name: str) -> bool:
+    """True when the environment variable is set to 1/true/yes."""
+    return os.environ.get(name, "").lower() in ("1", "true", "yes")
