@@ -36,9 +36,14 @@ format: $(STAMP) ## Format the code with ruff
 bench: $(STAMP) ## Speed benchmarks, each figure next to its target
 	$(PY) -m benchmarks.run
 
-reproduce: $(STAMP) ## Run the paper's experiment and write its figures to figures/
-	$(PY) -m experiments.meanfield_convergence
-	@echo "figures written to: $$(ls -1 figures/* | tr '\n' ' ')"
+RUN_DIR := outputs/reproduce
+
+reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write its figures to figures/
+	$(PY) -m experiments.closed_loop hydra.run.dir=$(RUN_DIR)
+	$(PY) -m analysis.figures $(RUN_DIR) --out figures
+	$(PY) -m experiments.meanfield_convergence hydra.run.dir=$(RUN_DIR)/meanfield
+	@echo "log: $(RUN_DIR)/run.mcap"
+	@echo "figures:"; ls -1 figures/*
 
 clean: ## Remove outputs and figures (keeps .venv)
 	rm -rf outputs multirun figures .pytest_cache .ruff_cache

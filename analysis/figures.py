@@ -19,11 +19,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.animation import FuncAnimation, PillowWriter  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.animation import FuncAnimation, PillowWriter
 
-from analysis.load import LogError, RunLog, load_run  # noqa: E402
+from analysis.load import LogError, RunLog, load_run
 
 
 def _save(fig, out: Path, stem: str) -> list[Path]:
@@ -70,8 +70,12 @@ def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
         tv, v = vel.at(t)
         speed = np.hypot(v[0], v[1])
         q = axes[2, col].quiver(
-            xc[::step], yc[::step], v[0][::step, ::step], v[1][::step, ::step],
-            speed[::step, ::step], cmap="magma",
+            xc[::step],
+            yc[::step],
+            v[0][::step, ::step],
+            v[1][::step, ::step],
+            speed[::step, ::step],
+            cmap="magma",
         )
         axes[2, col].set_aspect("equal")
         axes[2, col].set_xlim(extent[0], extent[1])
@@ -92,9 +96,17 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
     fig.colorbar(im, ax=ax0, label="1/length$^2$")
     for run in runs:
         m = run.metrics
-        (line,) = ax1.semilogy(m["t"], m["phat_target_l2"], label=rf"$\|\hat p - p_*\|$ {_name(run)}")
-        ax1.semilogy(m["t"], m["phi_l2"], ls="--", lw=0.9, color=line.get_color(),
-                     label=rf"$\|p - p_*\|$ (mean-field) {_name(run)}")
+        (line,) = ax1.semilogy(
+            m["t"], m["phat_target_l2"], label=rf"$\|\hat p - p_*\|$ {_name(run)}"
+        )
+        ax1.semilogy(
+            m["t"],
+            m["phi_l2"],
+            ls="--",
+            lw=0.9,
+            color=line.get_color(),
+            label=rf"$\|p - p_*\|$ (mean-field) {_name(run)}",
+        )
     ax1.set_xlabel("t (s)")
     ax1.set_ylabel("L2 norm (1/length)")
     ax1.set_title("convergence error")
@@ -116,8 +128,13 @@ def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:
     ax0.set_xlim(extent[0], extent[1])
     ax0.set_ylim(extent[2], extent[3])
     ax0.set_aspect("equal")
-    im = ax1.imshow(p_hat.values[0, 0], origin="lower", extent=extent, vmin=0,
-                    vmax=float(np.nanmax(p_hat.values)))
+    im = ax1.imshow(
+        p_hat.values[0, 0],
+        origin="lower",
+        extent=extent,
+        vmin=0,
+        vmax=float(np.nanmax(p_hat.values)),
+    )
     title = fig.suptitle("")
 
     def draw(k: int):

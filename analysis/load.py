@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from mcap.reader import make_reader
 
 
 class LogError(RuntimeError):
@@ -25,7 +25,8 @@ class LogError(RuntimeError):
 @dataclass
 class FieldSeries:
     """A field topic: ``t`` (s) of shape ``(K,)``, ``values`` of shape ``(K, c, ny, nx)``,
-    the field ``names`` (``c`` of them), the grid ``origin`` and ``cell_size``."""
+    the field ``names`` (``c`` of them), the grid ``origin`` and ``cell_size``.
+    """
 
     t: np.ndarray
     values: np.ndarray
@@ -71,7 +72,9 @@ class RunLog:
         return self.metadata.get("status", {}).get("state", "truncated")
 
 
-def _decode_grid(msg) -> tuple[np.ndarray, tuple[str, ...], tuple[float, float], tuple[float, float]]:
+def _decode_grid(
+    msg,
+) -> tuple[np.ndarray, tuple[str, ...], tuple[float, float], tuple[float, float]]:
     names = tuple(f.name for f in msg.fields)
     k = len(names)
     raw = np.frombuffer(msg.data, dtype="<f4")
@@ -130,7 +133,9 @@ def load_run(path: str | Path) -> RunLog:
     except LogError:
         raise
     except Exception as err:  # the mcap reader raises many types on damaged files
-        raise LogError(f"{path} is not a readable densityloop log: {type(err).__name__}: {err}") from err
+        raise LogError(
+            f"{path} is not a readable densityloop log: {type(err).__name__}: {err}"
+        ) from err
     fields = {
         topic: FieldSeries(np.array(g["t"]), np.stack(g["v"]), g["names"], g["o"], g["c"])
         for topic, g in grids.items()

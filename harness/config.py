@@ -91,7 +91,8 @@ class MeanFieldConf:
 @dataclass
 class PlantConf:
     """``name``: ``agents`` (robots, KDE measurements) or ``meanfield`` (no robots;
-    measurements are the truth plus seeded Gaussian noise of the KDE's variance)."""
+    measurements are the truth plus seeded Gaussian noise of the KDE's variance).
+    """
 
     name: str = "agents"
 
@@ -106,7 +107,8 @@ class AgentsConf:
 @dataclass
 class KDEConf:
     """``bandwidth``: kernel standard deviation ``h`` (length); ``mirror``: wall images;
-    ``method``: ``auto`` | ``exact`` | ``binned``."""
+    ``method``: ``auto`` | ``exact`` | ``binned``.
+    """
 
     bandwidth: float = 0.04
     mirror: bool = True
@@ -117,7 +119,8 @@ class KDEConf:
 class FilterConf:
     """``method``: ``local`` (fast) | ``reference`` (dense) | ``filterpy`` (dense,
     filterpy engine); the rest as :class:`harness.filters.common.FilterSettings`
-    (``process_noise`` in 1 / s, ``r_floor`` in 1 / length^2)."""
+    (``process_noise`` in 1 / s, ``r_floor`` in 1 / length^2).
+    """
 
     method: str = "local"
     process_noise: float = 0.1
@@ -130,7 +133,8 @@ class FilterConf:
 class EstimatorConf:
     """``name``: ``filters`` | ``kde`` | ``exact`` | ``injected``; ``delta``: size of
     the injected error (1 / length); ``omega``: its rotation rate (rad / s);
-    ``modes``: its highest cosine mode per axis."""
+    ``modes``: its highest cosine mode per axis.
+    """
 
     name: str = "filters"
     delta: float = 0.0
@@ -141,7 +145,8 @@ class EstimatorConf:
 @dataclass
 class LogConf:
     """``field_every``/``positions_every``: steps between field / position messages;
-    ``progress``: ``auto`` (a bar when stderr is a terminal) | ``on`` | ``off``."""
+    ``progress``: ``auto`` (a bar when stderr is a terminal) | ``on`` | ``off``.
+    """
 
     field_every: int = 10
     positions_every: int = 10

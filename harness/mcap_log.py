@@ -66,9 +66,11 @@ METRICS_SCHEMA = {
     "description": "Per-step metrics of a densityloop run; units in the README.",
     "type": "object",
     "properties": {
-        key: ({"type": "number"} if key in ("t", "phi_l2", "phat_target_l2", "eps_l2",
-                                             "eps_g_l2", "lyapunov", "mass")
-              else {"type": ["number", "null"]})
+        key: (
+            {"type": "number"}
+            if key in ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
+            else {"type": ["number", "null"]}
+        )
         for key in METRIC_KEYS
     },
     "required": list(METRIC_KEYS),
@@ -159,7 +161,7 @@ class McapLogger:
         self.path, self.grid = Path(path), grid
         self.field_every, self.positions_every = field_every, positions_every
         self.total_steps = total_steps
-        self._file = open(self.path, "wb")  # noqa: SIM115 (closed in finalize)
+        self._file = open(self.path, "wb")
         self._writer = McapWriter(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library="densityloop")
         self._channels: dict[str, int] = {}
@@ -202,9 +204,7 @@ class McapLogger:
     def handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
         """Log one step: metrics always, fields and positions at their rates."""
         payload = {k: _json_number(metric_values.get(k)) for k in METRIC_KEYS}
-        self._write(
-            "/metrics", rec.t, json.dumps(payload).encode(), self._metrics_schema, "json"
-        )
+        self._write("/metrics", rec.t, json.dumps(payload).encode(), self._metrics_schema, "json")
         last = rec.step == self.total_steps
         if rec.step % self.field_every == 0 or last:
             t = rec.t
@@ -217,7 +217,9 @@ class McapLogger:
             self.write_grid("/fields/velocity", t, rec.velocity.centres)
         if rec.positions is not None and (rec.step % self.positions_every == 0 or last):
             msg = points_message(rec.t, rec.positions)
-            self._write("/swarm/positions", rec.t, msg.SerializeToString(), self._points_schema, "protobuf")
+            self._write(
+                "/swarm/positions", rec.t, msg.SerializeToString(), self._points_schema, "protobuf"
+            )
 
     def finalize(self, state: str, reason: str = "") -> None:
         """Write the ``status`` record, the summary and index, and close the file."""

@@ -45,8 +45,16 @@ from harness.loop import ClosedLoop, ControlLaw, metrics
 from harness.mcap_log import McapLogger
 
 PACKAGES = (
-    "numpy", "scipy", "numba", "filterpy", "mcap", "mcap-protobuf-support",
-    "foxglove-schemas-protobuf", "hydra-core", "omegaconf", "densityloop",
+    "numpy",
+    "scipy",
+    "numba",
+    "filterpy",
+    "mcap",
+    "mcap-protobuf-support",
+    "foxglove-schemas-protobuf",
+    "hydra-core",
+    "omegaconf",
+    "densityloop",
 )
 
 
@@ -57,7 +65,8 @@ class Terminated(Exception):
 @dataclass(frozen=True)
 class RunResult:
     """Outcome of :func:`run`: final state and reason, steps done, wall time (s),
-    the log's path and the last metrics."""
+    the log's path and the last metrics.
+    """
 
     state: str
     reason: str
@@ -143,8 +152,18 @@ def build_loop(cfg: DictConfig, rng: np.random.Generator) -> tuple[ClosedLoop, T
         }
     law = ControlLaw(cfg.control.law, target, cfg.control.alpha, sigma, **options)
     loop = ClosedLoop(
-        grid, target, init.on_grid(grid), estimator, law, sigma, dt, rng,
-        swarm=swarm, kde=kde, n_robots=cfg.agents.n, bandwidth=cfg.kde.bandwidth,
+        grid,
+        target,
+        init.on_grid(grid),
+        estimator,
+        law,
+        sigma,
+        dt,
+        rng,
+        swarm=swarm,
+        kde=kde,
+        n_robots=cfg.agents.n,
+        bandwidth=cfg.kde.bandwidth,
     )
     return loop, target
 
@@ -175,7 +194,9 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     )
     progress = {"auto": None, "on": True, "off": False}.get(cfg.log.progress, None)
     bar = tqdm(
-        total=steps, unit="step", disable=(not sys.stderr.isatty()) if progress is None else not progress
+        total=steps,
+        unit="step",
+        disable=(not sys.stderr.isatty()) if progress is None else not progress,
     )
     state, reason, done, last = "aborted", "", 0, {}
     previous = None
