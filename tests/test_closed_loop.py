@@ -63,7 +63,7 @@ def test_default_config_is_the_papers():
 
 
 def test_bad_types_fail_at_composition():
-    with pytest.raises(Exception, match="agents.n"):
+    with pytest.raises(Exception, match=r"agents\.n"):
         compose_cfg(["agents.n=many"])
 
 
