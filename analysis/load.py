@@ -9,13 +9,15 @@ units are those of the log contract in ``harness/mcap_log.py``.
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
-from mcap.reader import make_reader
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import InvalidMagic, StreamReader
 
 
 class LogError(RuntimeError):
@@ -65,6 +67,7 @@ class RunLog:
     fields: dict[str, FieldSeries]
     positions_t: np.ndarray
     positions: list[np.ndarray] = field(repr=False)
+    recovery: str | None = None
 
     @property
     def state(self) -> str:
@@ -89,62 +92,123 @@ def _decode_grid(
     )
 
 
+class LogWarning(UserWarning):
+    """A log that was only partly readable (truncated or damaged)."""
+
+
 def load_run(path: str | Path) -> RunLog:
     """Decode ``path`` (a ``run.mcap`` or a directory holding one).
 
+    The file is read record by record, so a log cut short (a run killed with
+    SIGKILL) or damaged part-way yields every complete chunk before the damage:
+    the result then has ``recovery`` set, ``state`` ``truncated`` when the status
+    record is missing, and a :class:`LogWarning` is issued. Messages on unknown
+    topics or with other schemas are ignored; a message that fails to decode is
+    skipped and counted.
+
     Raises:
-        LogError: if the file is missing or is not an MCAP file.
+        LogError: if the file is missing, empty, not an MCAP file, or holds nothing
+            readable.
     """
     path = Path(path)
     if path.is_dir():
         path = path / "run.mcap"
     if not path.is_file():
         raise LogError(f"no run log at {path}")
+    if path.stat().st_size == 0:
+        raise LogError(f"{path} is empty")
     metrics: dict[str, list] = {}
     grids: dict[str, dict] = {}
     pos_t: list[float] = []
     positions: list[np.ndarray] = []
     metadata: dict[str, dict[str, str]] = {}
-    try:
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            for record in reader.iter_metadata():
-                metadata[record.name] = dict(record.metadata)
-        with open(path, "rb") as f:
-            reader = make_reader(f)
-            for schema, channel, message in reader.iter_messages(log_time_order=True):
-                t = message.log_time / 1e9
-                name = schema.name if schema is not None else ""
-                if channel.topic == "/metrics" and channel.message_encoding == "json":
-                    for key, value in json.loads(message.data).items():
-                        metrics.setdefault(key, []).append(np.nan if value is None else value)
-                elif channel.topic.startswith("/fields/") and name == "foxglove.Grid":
-                    values, names, origin, cell = _decode_grid(GridMsg.FromString(message.data))
-                    g = grids.setdefault(
-                        channel.topic, {"t": [], "v": [], "names": names, "o": origin, "c": cell}
-                    )
-                    g["t"].append(t)
-                    g["v"].append(values)
-                elif channel.topic == "/swarm/positions" and name == "foxglove.PointCloud":
-                    cloud = PointCloud.FromString(message.data)
-                    pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 3)
-                    pos_t.append(t)
-                    positions.append(pts[:, :2].astype(float))
-    except LogError:
-        raise
-    except Exception as err:  # the mcap reader raises many types on damaged files
-        raise LogError(
-            f"{path} is not a readable densityloop log: {type(err).__name__}: {err}"
-        ) from err
+    schemas: dict[int, Schema] = {}
+    channels: dict[int, Channel] = {}
+    complete, problem, n_messages, n_bad = False, None, 0, 0
+    with open(path, "rb") as f:
+        try:
+            reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 30)
+            for record in reader.records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Metadata):
+                    metadata[record.name] = dict(record.metadata)
+                elif isinstance(record, Footer):
+                    complete = True
+                elif isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is None:
+                        n_bad += 1
+                        continue
+                    schema = schemas.get(channel.schema_id)
+                    try:
+                        n_messages += _take(
+                            record, channel, schema, metrics, grids, pos_t, positions
+                        )
+                    except Exception:  # a damaged message: skip it, count it
+                        n_bad += 1
+        except InvalidMagic as err:
+            raise LogError(f"{path} is not an MCAP file ({err})") from None
+        except Exception as err:  # truncation or damage: keep what was read
+            problem = f"{type(err).__name__}: {err}"
+    if n_messages == 0 and not metadata:
+        raise LogError(f"{path} holds no readable densityloop data ({problem or 'no messages'})")
+    recovery = None
+    if problem is not None or not complete or n_bad:
+        last_t = max((v[-1] for v in [metrics.get("t", [])] if v), default=float("nan"))
+        recovery = (
+            f"recovered {n_messages} messages up to t = {last_t:.3f} s"
+            f"{f', skipped {n_bad} damaged' if n_bad else ''}; "
+            f"{'file ends early' if not complete else 'file damaged'}"
+            f"{f' ({problem})' if problem else ''}"
+        )
+        warnings.warn(f"{path}: {recovery}", LogWarning, stacklevel=2)
+    n_t = min((len(v) for v in metrics.values()), default=0)
     fields = {
         topic: FieldSeries(np.array(g["t"]), np.stack(g["v"]), g["names"], g["o"], g["c"])
         for topic, g in grids.items()
+        if g["v"]
     }
     return RunLog(
         path=path,
         metadata=metadata,
-        metrics={k: np.asarray(v, dtype=float) for k, v in metrics.items()},
+        metrics={k: np.asarray(v[:n_t], dtype=float) for k, v in metrics.items()},
         fields=fields,
         positions_t=np.array(pos_t),
         positions=positions,
+        recovery=recovery,
     )
+
+
+def _take(record, channel, schema, metrics, grids, pos_t, positions) -> bool:
+    """Decode one message of a known topic into the accumulators; False when the
+    topic or schema is not one of the log contract's.
+    """
+    t = record.log_time / 1e9
+    name = schema.name if schema is not None else ""
+    if channel.topic == "/metrics" and channel.message_encoding == "json":
+        values = json.loads(record.data)
+        if not isinstance(values, dict) or "t" not in values:
+            raise ValueError("metrics message is not a JSON object with a time")
+        row = {key: np.nan if value is None else float(value) for key, value in values.items()}
+        for key, value in row.items():
+            metrics.setdefault(key, []).append(value)
+    elif channel.topic.startswith("/fields/") and name == "foxglove.Grid":
+        values, names, origin, cell = _decode_grid(GridMsg.FromString(record.data))
+        g = grids.setdefault(
+            channel.topic, {"t": [], "v": [], "names": names, "o": origin, "c": cell}
+        )
+        if values.shape[1:] != (g["v"][0].shape[1:] if g["v"] else values.shape[1:]):
+            raise ValueError("grid size changed within a topic")
+        g["t"].append(t)
+        g["v"].append(values)
+    elif channel.topic == "/swarm/positions" and name == "foxglove.PointCloud":
+        cloud = PointCloud.FromString(record.data)
+        pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 3)
+        pos_t.append(t)
+        positions.append(pts[:, :2].astype(float))
+    else:
+        return False
+    return True

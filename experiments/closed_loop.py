@@ -4,11 +4,14 @@
     python -m experiments.closed_loop -m agents.n=256,1024,4096
 
 Writes ``run.mcap`` into the Hydra run (or job) directory; see ``harness/mcap_log.py``
-for its contract and ``python -m analysis.figures RUN_DIR`` for the figures.
+for its contract and ``python -m analysis.figures RUN_DIR`` for the figures. A config
+value that is not allowed stops the app before anything is written, with one line
+naming the key, the value and what is allowed, and exit status 2.
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import hydra
@@ -17,13 +20,19 @@ from omegaconf import DictConfig
 
 from harness.config import register_configs
 from harness.run import run
+from harness.validate import ConfigError, check_overrides, validate
 
 register_configs()
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
 def main(cfg: DictConfig) -> None:
-    """Run one closed loop and print where its log is."""
+    """Validate, run one closed loop and print where its log is."""
+    try:
+        validate(cfg)
+    except ConfigError as err:
+        print(err, file=sys.stderr)
+        sys.exit(2)
     out = Path(HydraConfig.get().runtime.output_dir)
     result = run(cfg, out)
     m = result.last_metrics
@@ -38,4 +47,8 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    error = check_overrides(sys.argv[1:], "closed_loop")
+    if error:
+        print(error, file=sys.stderr)
+        sys.exit(2)
     main()

@@ -77,9 +77,14 @@ def face_coefficients(u: np.ndarray, diffusivity: float, h: float) -> tuple[np.n
         raise ValueError(f"diffusivity must be >= 0, got {diffusivity}")
     if diffusivity == 0.0:
         return np.maximum(u, 0.0), np.maximum(-u, 0.0)
-    pe = u * h / diffusivity
     scale = diffusivity / h
-    return scale * bernoulli(-pe), scale * bernoulli(pe)
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        pe = u / scale
+        # a_R = scale B(Pe) = u / (exp(Pe) - 1): finite for every Pe, also when a
+        # tiny diffusivity makes Pe overflow (then the upwind values come out)
+        a_r = np.where(np.abs(pe) < 1e-6, scale * (1.0 - 0.5 * pe), u / np.expm1(pe))
+    # B(-z) = B(z) + z, so a_L = a_R + u
+    return a_r + u, a_r
 
 
 def rate(grid: Grid, p: np.ndarray, v: VelocityField, sigma: float) -> np.ndarray:

@@ -109,6 +109,8 @@ class ClosedLoop:
         self.noise_k = noise_constants(n_robots, bandwidth)
         self.truth = FokkerPlanck(grid, sigma)
         self.p = np.array(p0, dtype=float)
+        self.mass0 = self.grid.integrate(self.p)
+        self.mass_drift = 1e-6
         self.n = 0
         self.v: VelocityField | None = None
 
@@ -155,6 +157,9 @@ class ClosedLoop:
         if self.swarm is not None:
             self.swarm.step(v, self.dt, self.rng)
         self.p = self.truth.step(self.p, v, self.dt, a)
+        mass = self.grid.integrate(self.p)
+        if abs(mass - self.mass0) > self.mass_drift * self.mass0:
+            raise NumericalError(f"mass drifted from {self.mass0:.15g} to {mass:.15g}")
         self.n += 1
         p_meas, grad_meas = self._measure()
         est = self.estimator.step(
