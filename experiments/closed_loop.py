@@ -18,8 +18,11 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from hydra.types import RunMode
+
 from harness.config import register_configs
-from harness.run import run
+from harness.run import Terminated, run
+from harness.sweep import log_state, read_status, write_status
 from harness.validate import ConfigError, check_overrides, validate
 
 register_configs()
@@ -27,14 +30,43 @@ register_configs()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
 def main(cfg: DictConfig) -> None:
-    """Validate, run one closed loop and print where its log is."""
+    """Validate, run one closed loop and print where its log is.
+
+    In a multirun the job skips itself when its log is already complete, and a
+    failure is recorded rather than raised (see :mod:`harness.sweep`).
+    """
+    hc = HydraConfig.get()
+    out = Path(hc.runtime.output_dir)
+    multirun = hc.mode == RunMode.MULTIRUN
+    if multirun:
+        job = {"job": hc.job.num, "overrides": list(hc.overrides.task)}
+        if log_state(out / "run.mcap") == "completed":
+            write_status(out, state="completed", **job)
+            print(f"job {hc.job.num}: already completed, skipped ({out})")
+            return
     try:
         validate(cfg)
     except ConfigError as err:
         print(err, file=sys.stderr)
+        if multirun:
+            write_status(out, state="invalid", reason=str(err), **job)
+            return
         sys.exit(2)
-    out = Path(HydraConfig.get().runtime.output_dir)
-    result = run(cfg, out)
+    if not multirun:
+        result = run(cfg, out)
+    else:
+        runs = read_status(out).get("runs", 0) + 1
+        write_status(out, state="running", runs=runs, reason="", **job)
+        try:
+            result = run(cfg, out)
+        except (KeyboardInterrupt, Terminated):
+            write_status(out, state="aborted", reason="interrupted")
+            raise
+        except Exception as err:  # recorded, not raised: the other jobs go on
+            write_status(out, state="aborted", reason=f"{type(err).__name__}: {err}")
+            print(f"job {hc.job.num} failed: {type(err).__name__}: {err}", file=sys.stderr)
+            return
+        write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
     m = result.last_metrics
     print(
         f"{result.state} after {result.steps} steps in {result.wall_s:.1f} s wall: "
