@@ -96,7 +96,7 @@ class LogWarning(UserWarning):
     """A log that was only partly readable (truncated or damaged)."""
 
 
-def load_run(path: str | Path) -> RunLog:
+def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     """Decode ``path`` (a ``run.mcap`` or a directory holding one).
 
     The file is read record by record, so a log cut short (a run killed with
@@ -105,6 +105,10 @@ def load_run(path: str | Path) -> RunLog:
     record is missing, and a :class:`LogWarning` is issued. Messages on unknown
     topics or with other schemas are ignored; a message that fails to decode is
     skipped and counted.
+
+    Args:
+        path: The log or its directory.
+        topics: Decode only these topics (all when None); metadata is always read.
 
     Raises:
         LogError: if the file is missing, empty, not an MCAP file, or holds nothing
@@ -141,6 +145,8 @@ def load_run(path: str | Path) -> RunLog:
                     channel = channels.get(record.channel_id)
                     if channel is None:
                         n_bad += 1
+                        continue
+                    if topics is not None and channel.topic not in topics:
                         continue
                     schema = schemas.get(channel.schema_id)
                     try:

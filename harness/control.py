@@ -67,19 +67,20 @@ def heat_law(
     """The prior heat-equation law, estimate in the denominator (the paper's
     remark after eq. ``modified density feedback law 1`` contrasts it):
 
-        v = -alpha (q_hat - grad p_*) / max(p_hat, c)  -  sigma q_hat / max(p_hat, c).
+        v = -alpha (q_hat - grad p_*) / max(p_hat, c)  +  sigma q_hat / max(p_hat, c).
 
     With exact estimates and ``p >= c`` the closed loop is the heat equation
-    ``d_t p = alpha Laplacian(p - p_*)``. The second term cancels the robots'
-    diffusion ``sigma Laplacian(p)``; without it (``noise_compensation=False``,
-    the law as usually written for noise-free robots) the loop settles at
-    ``(alpha p_* + sigma c') / (alpha + sigma)`` rather than at ``p_*``.
+    ``d_t p = alpha Laplacian(p - p_*)``: the second term's transport
+    ``-div(sigma grad p)`` cancels the robots' diffusion ``sigma Laplacian(p)``.
+    Without it (``noise_compensation=False``, the law as usually written for
+    noise-free robots) the loop settles at ``(alpha p_* + sigma c') / (alpha +
+    sigma)`` rather than at ``p_*``.
 
     Args:
         density_floor: ``c > 0`` (1 / length^2), the floor that keeps the
             denominator away from zero where ``p_hat`` is small or negative. The
             default 0.1 is a tenth of the uniform density on the unit square.
-        noise_compensation: Include the ``-sigma q_hat / p_hat`` term.
+        noise_compensation: Include the ``+sigma q_hat / p_hat`` term.
     """
     _check_gains(alpha, sigma)
     if not density_floor > 0:
@@ -87,7 +88,7 @@ def heat_law(
     denom = np.maximum(p_hat, density_floor)
     centres = -alpha * (q_hat - target.grad) / denom
     if noise_compensation:
-        centres = centres - sigma * q_hat / denom
+        centres = centres + sigma * q_hat / denom
     return VelocityField.from_centres(centres)
 
 

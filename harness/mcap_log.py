@@ -21,7 +21,9 @@ float32 values interleaved per cell, frame ``world``. Field messages every
 
 Metadata records: ``config`` (key ``yaml``: the resolved config), ``provenance``
 (git commit and dirty flag, package versions, Python version, seed, host, start
-time; the only wall-clock values in the file) and ``status`` (key ``state``:
+time; the only wall-clock values in the file), ``theory`` (``poincare_lambda``, the
+``p_*``-weighted Poincare constant on the grid in 1 / length^2, and ``rate_exact`` =
+``(alpha + sigma) lambda`` in 1 / s, the decay rate with exact estimates) and ``status`` (key ``state``:
 ``completed`` | ``aborted`` | ``diverged``, key ``reason``), written just before the
 file is finished. :meth:`McapLogger.finalize` always runs (the run loop calls it in a
 ``finally`` block), so the summary and index are written also after an exception.
@@ -31,6 +33,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 from typing import Any
 
@@ -175,6 +178,11 @@ class McapLogger:
         self._writer.add_metadata("config", {"yaml": config_yaml})
         self._writer.add_metadata("provenance", provenance)
         self._finished = False
+        self.seconds = 0.0  # wall time spent logging steps (s)
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """An extra metadata record (string values)."""
+        self._writer.add_metadata(name, data)
 
     def _channel(self, topic: str, schema_id: int, encoding: str) -> int:
         if topic not in self._channels:
@@ -203,6 +211,13 @@ class McapLogger:
 
     def handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
         """Log one step: metrics always, fields and positions at their rates."""
+        t0 = time.perf_counter()
+        try:
+            self._handle(rec, metric_values)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+    def _handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
         payload = {k: _json_number(metric_values.get(k)) for k in METRIC_KEYS}
         self._write("/metrics", rec.t, json.dumps(payload).encode(), self._metrics_schema, "json")
         last = rec.step == self.total_steps

@@ -43,6 +43,7 @@ from harness.grid import Grid
 from harness.kde import KDE
 from harness.loop import ClosedLoop, ControlLaw, metrics
 from harness.mcap_log import McapLogger
+from harness.theory import poincare_constant
 
 PACKAGES = (
     "numpy",
@@ -65,7 +66,7 @@ class Terminated(Exception):
 @dataclass(frozen=True)
 class RunResult:
     """Outcome of :func:`run`: final state and reason, steps done, wall time (s),
-    the log's path and the last metrics.
+    the log's path, the last metrics and the wall time spent logging steps (s).
     """
 
     state: str
@@ -74,6 +75,7 @@ class RunResult:
     wall_s: float
     log_path: Path
     last_metrics: dict[str, Any]
+    log_s: float = 0.0
 
 
 def provenance(seed: int) -> dict[str, str]:
@@ -192,6 +194,14 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
         cfg.log.positions_every,
         steps,
     )
+    lam = poincare_constant(loop.grid, target.p)
+    logger.add_metadata(
+        "theory",
+        {
+            "poincare_lambda": repr(lam),
+            "rate_exact": repr((cfg.control.alpha + cfg.dynamics.sigma) * lam),
+        },
+    )
     progress = {"auto": None, "on": True, "off": False}.get(cfg.log.progress, None)
     bar = tqdm(
         total=steps,
@@ -233,7 +243,7 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
         logger.finalize(state, reason)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-    return RunResult(state, reason, done, time.perf_counter() - t0, logger.path, last)
+    return RunResult(state, reason, done, time.perf_counter() - t0, logger.path, last, logger.seconds)
 
 
 def threading_is_main() -> bool:

@@ -1,0 +1,264 @@
+"""Analyse a sweep from its logs: a tidy CSV and the study's figures.
+
+    python -m analysis.sweep SWEEP_DIR [--out DIR] [--tail 0.25]
+
+Reads every job directory below ``SWEEP_DIR`` that holds a ``run.mcap``: the
+overrides (Hydra's ``.hydra/overrides.yaml``, read with a safe YAML loader), the
+log's metadata (``status``, ``theory``) and its ``/metrics``. Writes
+``sweep.csv`` (one row per job; each override is a column) and figures chosen by what
+the sweep varies:
+
+* ``estimator.delta`` (ISS gain curve, ``iss_gain.png/.pdf``): the tail supremum of
+  ``||Phi|| = ||p - p_*||`` against the supremum of ``||eps||``, one curve per control
+  law, with the fitted linear gain;
+* ``agents.n`` (``agents_n.png/.pdf``): tail means of ``||Phi||``, ``||p_hat - p_*||``
+  and ``||eps||`` against N;
+* otherwise (``convergence.png/.pdf``): ``||Phi||`` curves overlaid and the fitted
+  exponential rates next to the theoretical ``(alpha + sigma) lambda``.
+
+Statistics (the CSV's columns; norms in 1/length, rates in 1/s): ``phi_tail_mean``,
+``phi_tail_sup``, ``phat_tail_mean``, ``eps_tail_mean``, ``eps_g_tail_mean`` over the
+last ``tail`` fraction of the run; ``eps_sup``, ``eps_g_sup`` over the whole run;
+``rate_fit``, the least-squares slope of ``-log ||Phi||`` over the second half of the
+run; ``rate_theory`` from the log's ``theory`` record; ``wall_s`` from the job's status.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import warnings
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+
+from analysis.load import LogError, LogWarning, load_run  # noqa: E402
+
+STATS = ("phi_tail_mean", "phi_tail_sup", "phat_tail_mean", "eps_tail_mean", "eps_g_tail_mean",
+         "eps_sup", "eps_g_sup", "rate_fit", "rate_theory", "t_end")
+
+
+def overrides_of(job_dir: Path) -> dict[str, str]:
+    """The job's overrides as ``{key: value}`` (from ``.hydra/overrides.yaml``)."""
+    path = job_dir / ".hydra" / "overrides.yaml"
+    out: dict[str, str] = {}
+    try:
+        items = yaml.safe_load(path.read_text()) or []
+    except (OSError, yaml.YAMLError):
+        return out
+    for item in items if isinstance(items, list) else []:
+        if isinstance(item, str) and "=" in item:
+            key, value = item.split("=", 1)
+            out[key.lstrip("+~")] = value
+    return out
+
+
+def decay_rate(t: np.ndarray, phi: np.ndarray) -> float:
+    """Least-squares slope of ``-log phi`` over the second half of the run (1 / s)."""
+    keep = (t >= t[-1] / 2) & np.isfinite(phi) & (phi > 0)
+    if keep.sum() < 3:
+        return math.nan
+    slope = np.polyfit(t[keep], np.log(phi[keep]), 1)[0]
+    return float(-slope)
+
+
+def job_stats(run, tail: float) -> dict[str, float]:
+    """The statistics of one run (see the module docstring)."""
+    m = run.metrics
+    t = m["t"]
+    last = t >= t[-1] * (1 - tail)
+
+    def tail_mean(key):
+        return float(np.nanmean(m[key][last])) if key in m and last.any() else math.nan
+
+    theory = run.metadata.get("theory", {})
+    return {
+        "phi_tail_mean": tail_mean("phi_l2"),
+        "phi_tail_sup": float(np.nanmax(m["phi_l2"][last])),
+        "phat_tail_mean": tail_mean("phat_target_l2"),
+        "eps_tail_mean": tail_mean("eps_l2"),
+        "eps_g_tail_mean": tail_mean("eps_g_l2"),
+        "eps_sup": float(np.nanmax(m["eps_l2"])),
+        "eps_g_sup": float(np.nanmax(m["eps_g_l2"])),
+        "rate_fit": decay_rate(t, m["phi_l2"]),
+        "rate_theory": float(theory.get("rate_exact", "nan")),
+        "t_end": float(t[-1]),
+    }
+
+
+def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Rows of the CSV and the decoded metrics per job directory."""
+    rows, series = [], {}
+    for log_path in sorted(sweep_dir.glob("*/run.mcap")):
+        job_dir = log_path.parent
+        row: dict[str, Any] = {"dir": job_dir.name, **overrides_of(job_dir)}
+        try:
+            status = json.loads((job_dir / "job_status.json").read_text())
+        except (OSError, ValueError):
+            status = {}
+        row["job"] = status.get("job", "")
+        row["wall_s"] = status.get("wall_s", math.nan)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", LogWarning)
+                run = load_run(log_path, topics={"/metrics"})
+        except LogError as err:
+            row["state"] = f"unreadable: {err}"
+            rows.append(row)
+            continue
+        row["state"] = run.state
+        if "t" in run.metrics and len(run.metrics["t"]) > 2:
+            row.update(job_stats(run, tail))
+            series[job_dir.name] = run.metrics
+        rows.append(row)
+    return rows, series
+
+
+def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
+    """Tidy CSV: fixed columns first, then every override key."""
+    fixed = ["job", "dir", "state", *STATS, "wall_s"]
+    keys = sorted({k for r in rows for k in r} - set(fixed))
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=[*keys, *fixed], restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _varied(rows: list[dict[str, Any]]) -> list[str]:
+    keys = sorted({k for r in rows for k in r} - {"job", "dir", "state", "wall_s", *STATS})
+    return [k for k in keys if len({str(r.get(k)) for r in rows}) > 1]
+
+
+def _save(fig, out: Path, stem: str) -> list[Path]:
+    paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
+    for p in paths:
+        fig.savefig(p, dpi=120)
+    plt.close(fig)
+    return paths
+
+
+def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
+    """Tail sup ||Phi|| against sup ||eps||, per control law, with fitted gains."""
+    fig, ax = plt.subplots(figsize=(6, 4.5), constrained_layout=True)
+    gains: dict[str, float] = {}
+    groups: dict[str, list] = {}
+    for r in rows:
+        if "phi_tail_sup" in r:
+            groups.setdefault(r.get("controller", "paper"), []).append(r)
+    for law, group in sorted(groups.items()):
+        group.sort(key=lambda r: float(r.get("estimator.delta", 0)))
+        x = np.array([r["eps_sup"] for r in group])
+        y = np.array([r["phi_tail_sup"] for r in group])
+        pos = x > 1e-12
+        (line,) = ax.loglog(x[pos], y[pos], "o-", label=f"{law} law")
+        if pos.sum() >= 2:
+            gains[law] = float(np.linalg.lstsq(x[pos, None], y[pos], rcond=None)[0][0])
+            xs = np.geomspace(x[pos].min(), x[pos].max(), 20)
+            ax.loglog(xs, gains[law] * xs, ":", color=line.get_color(),
+                      label=rf"fit $\gamma$ = {gains[law]:.3g}")
+        if (~pos).any():
+            ax.axhline(y[~pos].max(), color=line.get_color(), ls="--", lw=0.8,
+                       label=f"{law}, no error")
+    ax.set_xlabel(r"$\sup_t \|\epsilon\|_{L^2}$ (1/length)")
+    ax.set_ylabel(r"tail $\sup \|\Phi\|_{L^2}$ (1/length)")
+    ax.set_title("ISS gain: tracking error against estimation error")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, out, "iss_gain"), gains
+
+
+def agents_figure(rows, out: Path) -> list[Path]:
+    """Tail errors against the number of robots."""
+    rows = sorted((r for r in rows if "phi_tail_mean" in r), key=lambda r: int(r["agents.n"]))
+    n = np.array([int(r["agents.n"]) for r in rows])
+    fig, ax = plt.subplots(figsize=(6, 4.5), constrained_layout=True)
+    for key, label in (("phi_tail_mean", r"$\|p - p_*\|$ (mean-field)"),
+                       ("phat_tail_mean", r"$\|\hat p - p_*\|$"),
+                       ("eps_tail_mean", r"$\|\hat p - p\|$")):
+        ax.loglog(n, [r[key] for r in rows], "o-", label=label)
+    ax.loglog(n, rows[0]["phat_tail_mean"] * np.sqrt(n[0] / n), "k:", label=r"$\propto N^{-1/2}$")
+    ax.set_xlabel("robots N")
+    ax.set_ylabel("tail mean (1/length)")
+    ax.set_title("tracking and estimation errors against swarm size")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, out, "agents_n")
+
+
+def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]:
+    """||Phi|| curves overlaid and fitted against theoretical rates."""
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
+    label_key = varied[0] if varied else "dir"
+    done = [r for r in rows if r["dir"] in series]
+    for r in done:
+        m = series[r["dir"]]
+        ax0.semilogy(m["t"], m["phi_l2"], label=f"{label_key}={r.get(label_key, r['dir'])}")
+    ax0.set_xlabel("t (s)")
+    ax0.set_ylabel(r"$\|p - p_*\|_{L^2}$ (1/length)")
+    ax0.grid(True, which="both", alpha=0.3)
+    ax0.legend(fontsize=8)
+    ax0.set_title("convergence curves")
+    x = np.arange(len(done))
+    ax1.bar(x - 0.2, [r["rate_fit"] for r in done], 0.4, label="measured (fit, second half)")
+    ax1.bar(x + 0.2, [r["rate_theory"] for r in done], 0.4, label=r"$(\alpha+\sigma)\lambda$")
+    ax1.set_xticks(x, [str(r.get(label_key, r["dir"])) for r in done])
+    ax1.set_xlabel(label_key)
+    ax1.set_ylabel("exponential rate (1/s)")
+    ax1.legend(fontsize=8)
+    ax1.set_title("decay rates")
+    return _save(fig, out, "convergence")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """CLI entry point; returns the exit status."""
+    parser = argparse.ArgumentParser(description="CSV and figures of a sweep, from its logs.")
+    parser.add_argument("sweep_dir", type=Path)
+    parser.add_argument("--out", type=Path, default=None, help="default: SWEEP_DIR/analysis")
+    parser.add_argument("--tail", type=float, default=0.25, help="tail fraction of each run")
+    args = parser.parse_args(argv)
+    if not args.sweep_dir.is_dir():
+        print(f"error: no sweep directory at {args.sweep_dir}", file=sys.stderr)
+        return 2
+    if not 0 < args.tail <= 1:
+        print(f"error: --tail must be in (0, 1], got {args.tail}", file=sys.stderr)
+        return 2
+    rows, series = analyse(args.sweep_dir, args.tail)
+    if not rows:
+        print(f"error: no run.mcap below {args.sweep_dir}", file=sys.stderr)
+        return 2
+    out = args.out or args.sweep_dir / "analysis"
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(rows, out / "sweep.csv")
+    written = [out / "sweep.csv"]
+    varied = _varied(rows)
+    usable = [r for r in rows if "phi_tail_sup" in r]
+    if usable and "estimator.delta" in varied:
+        paths, gains = iss_figure(usable, out)
+        written += paths
+        for law, g in gains.items():
+            print(f"fitted ISS gain ({law} law): {g:.4g} (tail sup ||Phi|| per unit sup ||eps||)")
+    elif usable and "agents.n" in varied:
+        written += agents_figure(usable, out)
+    elif usable:
+        written += convergence_figure(usable, series, varied, out)
+        for r in usable:
+            print(f"{r['dir']}: rate {r['rate_fit']:.4g} 1/s measured, "
+                  f"{r['rate_theory']:.4g} 1/s theory")
+    bad = [r for r in rows if r.get("state") != "completed"]
+    print(f"{len(rows)} jobs, {len(bad)} not completed")
+    for p in written:
+        print(p)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
