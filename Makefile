@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-slow lint format bench reproduce clean
+.PHONY: help install test test-slow lint format bench reproduce sweeps clean
 
 help: ## List the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-12s %s\n", $$1, $$2}'
@@ -44,6 +44,20 @@ reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write it
 	$(PY) -m experiments.meanfield_convergence hydra.run.dir=$(RUN_DIR)/meanfield
 	@echo "log: $(RUN_DIR)/run.mcap"
 	@echo "figures:"; ls -1 figures/*
+
+STUDIES := iss_gain agents_n conv_grid conv_sigma conv_alpha
+
+sweeps: $(STAMP) ## Run every study preset (about 6 min on 2 cores) and write figures/sweeps/
+	@for s in $(STUDIES); do \
+		echo "== $$s"; \
+		$(PY) -m experiments.closed_loop +experiment=$$s hydra.sweep.dir=multirun/$$s || exit 1; \
+		$(PY) -m analysis.sweep multirun/$$s --out figures/sweeps/$$s || exit 1; \
+	done
+	@echo "figures:"; ls -1 figures/sweeps/*/*.png
+
+$(addprefix sweep-,$(STUDIES)): sweep-%: $(STAMP) ## (sweep-iss_gain, ...) one study and its figures
+	$(PY) -m experiments.closed_loop +experiment=$* hydra.sweep.dir=multirun/$*
+	$(PY) -m analysis.sweep multirun/$* --out figures/sweeps/$*
 
 clean: ## Remove outputs and figures (keeps .venv)
 	rm -rf outputs multirun figures .pytest_cache .ruff_cache

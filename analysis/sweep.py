@@ -37,14 +37,24 @@ from typing import Any
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import yaml  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import yaml
 
-from analysis.load import LogError, LogWarning, load_run  # noqa: E402
+from analysis.load import LogError, LogWarning, load_run
 
-STATS = ("phi_tail_mean", "phi_tail_sup", "phat_tail_mean", "eps_tail_mean", "eps_g_tail_mean",
-         "eps_sup", "eps_g_sup", "rate_fit", "rate_theory", "t_end")
+STATS = (
+    "phi_tail_mean",
+    "phi_tail_sup",
+    "phat_tail_mean",
+    "eps_tail_mean",
+    "eps_g_tail_mean",
+    "eps_sup",
+    "eps_g_sup",
+    "rate_fit",
+    "rate_theory",
+    "t_end",
+)
 
 
 def overrides_of(job_dir: Path) -> dict[str, str]:
@@ -163,11 +173,17 @@ def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
         if pos.sum() >= 2:
             gains[law] = float(np.linalg.lstsq(x[pos, None], y[pos], rcond=None)[0][0])
             xs = np.geomspace(x[pos].min(), x[pos].max(), 20)
-            ax.loglog(xs, gains[law] * xs, ":", color=line.get_color(),
-                      label=rf"fit $\gamma$ = {gains[law]:.3g}")
+            ax.loglog(
+                xs,
+                gains[law] * xs,
+                ":",
+                color=line.get_color(),
+                label=rf"fit $\gamma$ = {gains[law]:.3g}",
+            )
         if (~pos).any():
-            ax.axhline(y[~pos].max(), color=line.get_color(), ls="--", lw=0.8,
-                       label=f"{law}, no error")
+            ax.axhline(
+                y[~pos].max(), color=line.get_color(), ls="--", lw=0.8, label=f"{law}, no error"
+            )
     ax.set_xlabel(r"$\sup_t \|\epsilon\|_{L^2}$ (1/length)")
     ax.set_ylabel(r"tail $\sup \|\Phi\|_{L^2}$ (1/length)")
     ax.set_title("ISS gain: tracking error against estimation error")
@@ -181,9 +197,11 @@ def agents_figure(rows, out: Path) -> list[Path]:
     rows = sorted((r for r in rows if "phi_tail_mean" in r), key=lambda r: int(r["agents.n"]))
     n = np.array([int(r["agents.n"]) for r in rows])
     fig, ax = plt.subplots(figsize=(6, 4.5), constrained_layout=True)
-    for key, label in (("phi_tail_mean", r"$\|p - p_*\|$ (mean-field)"),
-                       ("phat_tail_mean", r"$\|\hat p - p_*\|$"),
-                       ("eps_tail_mean", r"$\|\hat p - p\|$")):
+    for key, label in (
+        ("phi_tail_mean", r"$\|p - p_*\|$ (mean-field)"),
+        ("phat_tail_mean", r"$\|\hat p - p_*\|$"),
+        ("eps_tail_mean", r"$\|\hat p - p\|$"),
+    ):
         ax.loglog(n, [r[key] for r in rows], "o-", label=label)
     ax.loglog(n, rows[0]["phat_tail_mean"] * np.sqrt(n[0] / n), "k:", label=r"$\propto N^{-1/2}$")
     ax.set_xlabel("robots N")
@@ -251,8 +269,10 @@ def main(argv: list[str] | None = None) -> int:
     elif usable:
         written += convergence_figure(usable, series, varied, out)
         for r in usable:
-            print(f"{r['dir']}: rate {r['rate_fit']:.4g} 1/s measured, "
-                  f"{r['rate_theory']:.4g} 1/s theory")
+            print(
+                f"{r['dir']}: rate {r['rate_fit']:.4g} 1/s measured, "
+                f"{r['rate_theory']:.4g} 1/s theory"
+            )
     bad = [r for r in rows if r.get("state") != "completed"]
     print(f"{len(rows)} jobs, {len(bad)} not completed")
     for p in written:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import platform
 import time
 from collections.abc import Callable
+from pathlib import Path as Path_
 
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
@@ -160,6 +161,53 @@ def bench_filters() -> bool:
     return ok and met
 
 
+def bench_sweeps() -> bool:
+    """Parallel efficiency of a two-job sweep and the cost of logging (issue: sweeps)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    print("Sweeps (paper-scale agent loop, 20 s of simulated time per job):")
+    base = [sys.executable, "-m", "experiments.closed_loop", "sim.t_final=20", "log.progress=off"]
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        subprocess.run(
+            [*base, "seed=1", f"hydra.run.dir={tmp}/one"], check=True, capture_output=True
+        )
+        one = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        subprocess.run(
+            [*base, "-m", "seed=1,2", f"hydra.sweep.dir={tmp}/two"], check=True, capture_output=True
+        )
+        two = time.perf_counter() - t0
+    ratio = two / one
+    met = ratio <= 1.15
+    print(f"  {'one job (process wall time)':<52s} {one:9.2f} s")
+    print(f"  {'two jobs on two cores (joblib launcher)':<52s} {two:9.2f} s")
+    verdict = "OK" if met else "MISSED"
+    print(f"  {'ratio two jobs / one job':<52s} {ratio:9.2f}      target <= 1.15    {verdict}")
+    # logging share of a run's wall time, default rates
+    from hydra import compose, initialize_config_dir
+
+    from harness.config import register_configs
+    from harness.run import run
+
+    register_configs()
+    conf = str(Path_(__file__).resolve().parents[1] / "conf")
+    with initialize_config_dir(config_dir=conf, version_base="1.3"):
+        cfg = compose("closed_loop", overrides=["sim.t_final=20", "log.progress=off"])
+    with tempfile.TemporaryDirectory() as tmp:
+        result = run(cfg, Path_(tmp))
+    share = result.log_s / result.wall_s
+    met_log = share < 0.10
+    verdict = "OK" if met_log else "MISSED"
+    print(
+        f"  {'logging share of run wall time (default rates)':<52s} {100 * share:9.1f} %    "
+        f"target < 10 %   {verdict}"
+    )
+    return met and met_log
+
+
 def main() -> None:
     """Run every benchmark and summarise."""
     print(
@@ -170,6 +218,7 @@ def main() -> None:
     print(f"BLAS: {sorted(blas)}")
     with threadpool_limits(1):
         results = [bench_kde_agents(), bench_fokker_planck(), bench_filters()]
+    results.append(bench_sweeps())
     print("all targets met" if all(results) else "SOME TARGETS MISSED")
 
 

@@ -16,9 +16,8 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
-
 from hydra.types import RunMode
+from omegaconf import DictConfig
 
 from harness.config import register_configs
 from harness.run import Terminated, run

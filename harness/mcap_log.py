@@ -23,8 +23,9 @@ Metadata records: ``config`` (key ``yaml``: the resolved config), ``provenance``
 (git commit and dirty flag, package versions, Python version, seed, host, start
 time; the only wall-clock values in the file), ``theory`` (``poincare_lambda``, the
 ``p_*``-weighted Poincare constant on the grid in 1 / length^2, and ``rate_exact`` =
-``(alpha + sigma) lambda`` in 1 / s, the decay rate with exact estimates) and ``status`` (key ``state``:
-``completed`` | ``aborted`` | ``diverged``, key ``reason``), written just before the
+``(alpha + sigma) lambda`` in 1 / s, the decay rate with exact estimates) and
+``status`` (key ``state``: ``completed`` | ``aborted`` | ``diverged``, key
+``reason``), written just before the
 file is finished. :meth:`McapLogger.finalize` always runs (the run loop calls it in a
 ``finally`` block), so the summary and index are written also after an exception.
 """

@@ -243,7 +243,9 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
         logger.finalize(state, reason)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
-    return RunResult(state, reason, done, time.perf_counter() - t0, logger.path, last, logger.seconds)
+    return RunResult(
+        state, reason, done, time.perf_counter() - t0, logger.path, last, logger.seconds
+    )
 
 
 def threading_is_main() -> bool:

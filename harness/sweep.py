@@ -33,7 +33,8 @@ STATUS_FILE = "job_status.json"
 
 def log_state(path: Path) -> str | None:
     """The ``status`` record's state of a finished log, None when the file is missing,
-    unfinished (no summary) or unreadable. Reads only the summary section."""
+    unfinished (no summary) or unreadable. Reads only the summary section.
+    """
     if not path.is_file():
         return None
     try:
@@ -93,14 +94,18 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     for r in rows:
         wall = r["wall_s"]
         wall_text = f"{wall:.1f}" if isinstance(wall, (int, float)) else str(wall)
-        lines.append(f"| {r['job']} | {r['overrides']} | {r['state']} | {r['runs']} | {wall_text} |")
+        lines.append(
+            f"| {r['job']} | {r['overrides']} | {r['state']} | {r['runs']} | {wall_text} |"
+        )
     return "\n".join(lines)
 
 
 def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
     """``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory."""
     with open(sweep_dir / "sweep_status.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=["job", "dir", "overrides", "state", "runs", "wall_s", "reason"])
+        writer = csv.DictWriter(
+            f, fieldnames=["job", "dir", "overrides", "state", "runs", "wall_s", "reason"]
+        )
         writer.writeheader()
         writer.writerows(rows)
     (sweep_dir / "sweep_status.md").write_text(format_table(rows) + "\n")
@@ -118,6 +123,9 @@ class SweepStatusCallback(Callback):
         print(format_table(rows))
         bad = [r for r in rows if r["state"] != "completed"]
         if bad:
-            print(f"{len(bad)} job(s) did not complete; re-run the same command with "
-                  f"hydra.sweep.dir={sweep_dir} to rerun only those", file=sys.stderr)
+            print(
+                f"{len(bad)} job(s) did not complete; re-run the same command with "
+                f"hydra.sweep.dir={sweep_dir} to rerun only those",
+                file=sys.stderr,
+            )
             sys.exit(1)
