@@ -10,6 +10,7 @@ STAMP := $(VENV)/.installed
 
 help: ## List the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-12s %s\n", $$1, $$2}'
+	@echo "  sweep-NAME   One study and its figures; NAME in: $(STUDIES)"
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -55,7 +56,7 @@ sweeps: $(STAMP) ## Run every study preset (about 6 min on 2 cores) and write fi
 	done
 	@echo "figures:"; ls -1 figures/sweeps/*/*.png
 
-$(addprefix sweep-,$(STUDIES)): sweep-%: $(STAMP) ## (sweep-iss_gain, ...) one study and its figures
+$(addprefix sweep-,$(STUDIES)): sweep-%: $(STAMP)
 	$(PY) -m experiments.closed_loop +experiment=$* hydra.sweep.dir=multirun/$*
 	$(PY) -m analysis.sweep multirun/$* --out figures/sweeps/$*
 

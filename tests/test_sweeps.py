@@ -135,3 +135,23 @@ def test_iss_curve_is_monotone_and_zero_error_rate_meets_poincare_bound(tmp_path
     assert zero["rate_fit"] >= 0.9 * zero["rate_theory"], (zero["rate_fit"], zero["rate_theory"])
     # and the injected error has the size asked for
     np.testing.assert_allclose([r["eps_sup"] for r in rows[1:]], [0.01, 0.03, 0.1], rtol=1e-6)
+
+
+def test_joblib_job_is_byte_identical_to_a_serial_run(tmp_path):
+    from mcap.stream_reader import StreamReader
+
+    def payloads(path):
+        with open(path, "rb") as f:
+            return [(r.channel_id, r.log_time, r.data) for r in StreamReader(f).records
+                    if type(r).__name__ == "Message"]
+
+    serial = tmp_path / "serial"
+    proc = subprocess.run(
+        [sys.executable, "-m", "experiments.closed_loop", "seed=5", *TINY, f"hydra.run.dir={serial}"],
+        capture_output=True, text=True, cwd=ROOT, timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    multirun(tmp_path / "sweep", "seed=5,6", *TINY)
+    (job,) = [d for d in job_dirs(tmp_path / "sweep") if "seed=5" in d.name]
+    a, b = payloads(serial / "run.mcap"), payloads(job / "run.mcap")
+    assert len(a) > 10 and a == b
