@@ -60,7 +60,7 @@ PACKAGES = (
 
 
 class Terminated(Exception):
-    """Raised in the run loop when the process receives SIGTERM."""
+    """Raised in the run loop, between steps, after SIGINT or SIGTERM."""
 
 
 @dataclass(frozen=True)
@@ -170,10 +170,6 @@ def build_loop(cfg: DictConfig, rng: np.random.Generator) -> tuple[ClosedLoop, T
     return loop, target
 
 
-def _raise_terminated(signum: int, frame: Any) -> None:
-    raise Terminated(f"received signal {signum}")
-
-
 def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     """Run the closed loop of ``cfg`` and write ``out_dir / 'run.mcap'``.
 
@@ -209,9 +205,19 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
         disable=(not sys.stderr.isatty()) if progress is None else not progress,
     )
     state, reason, done, last = "aborted", "", 0, {}
-    previous = None
-    if hasattr(signal, "SIGTERM") and threading_is_main():
-        previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    # SIGINT and SIGTERM request a stop that the loop honours between steps, so a
+    # signal never lands inside the MCAP writer; a second signal stops at once.
+    requested: list[int] = []
+
+    def request_stop(signum: int, frame: Any) -> None:
+        if requested:
+            raise KeyboardInterrupt
+        requested.append(signum)
+
+    previous = {}
+    if threading_is_main():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, request_stop)
     t0 = time.perf_counter()
     try:
         with threadpool_limits(1):
@@ -220,6 +226,8 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
             last = metrics(loop.grid, target, rec)
             logger.handle(rec, last)
             for _ in range(steps):
+                if requested:
+                    raise Terminated(f"received {signal.Signals(requested[0]).name}")
                 rec = loop.step()
                 done = rec.step
                 last = metrics(loop.grid, target, rec)
@@ -241,8 +249,8 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     finally:
         bar.close()
         logger.finalize(state, reason)
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return RunResult(
         state, reason, done, time.perf_counter() - t0, logger.path, last, logger.seconds
     )

@@ -142,13 +142,26 @@ def test_joblib_job_is_byte_identical_to_a_serial_run(tmp_path):
 
     def payloads(path):
         with open(path, "rb") as f:
-            return [(r.channel_id, r.log_time, r.data) for r in StreamReader(f).records
-                    if type(r).__name__ == "Message"]
+            return [
+                (r.channel_id, r.log_time, r.data)
+                for r in StreamReader(f).records
+                if type(r).__name__ == "Message"
+            ]
 
     serial = tmp_path / "serial"
     proc = subprocess.run(
-        [sys.executable, "-m", "experiments.closed_loop", "seed=5", *TINY, f"hydra.run.dir={serial}"],
-        capture_output=True, text=True, cwd=ROOT, timeout=300,
+        [
+            sys.executable,
+            "-m",
+            "experiments.closed_loop",
+            "seed=5",
+            *TINY,
+            f"hydra.run.dir={serial}",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
     )
     assert proc.returncode == 0, proc.stderr
     multirun(tmp_path / "sweep", "seed=5,6", *TINY)
