@@ -24,14 +24,7 @@ import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
 
 from analysis.load import LogError, RunLog, load_run
-
-
-def _save(fig, out: Path, stem: str) -> list[Path]:
-    paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
-    for p in paths:
-        fig.savefig(p, dpi=120)
-    plt.close(fig)
-    return paths
+from analysis.plotting import save_figure
 
 
 def _name(run: RunLog) -> str:
@@ -84,7 +77,7 @@ def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
         fig.colorbar(q, ax=axes[2, col], shrink=0.7, label="speed (length/s)")
     fig.colorbar(im, ax=axes[1, :], shrink=0.8, label=r"$\hat p$ (1/length$^2$)")
     fig.suptitle("Swarm (top), density estimate (middle), velocity field (bottom)")
-    return _save(fig, out, stem)
+    return save_figure(fig, out, stem)
 
 
 def figure2(runs: list[RunLog], out: Path) -> list[Path]:
@@ -112,7 +105,7 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
     ax1.set_title("convergence error")
     ax1.grid(True, which="both", alpha=0.3)
     ax1.legend(fontsize=7)
-    return _save(fig, out, "fig2")
+    return save_figure(fig, out, "fig2")
 
 
 def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:

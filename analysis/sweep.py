@@ -42,6 +42,7 @@ import numpy as np
 import yaml
 
 from analysis.load import LogError, LogWarning, load_run
+from analysis.plotting import save_figure
 
 STATS = (
     "phi_tail_mean",
@@ -148,14 +149,6 @@ def _varied(rows: list[dict[str, Any]]) -> list[str]:
     return [k for k in keys if len({str(r.get(k)) for r in rows}) > 1]
 
 
-def _save(fig, out: Path, stem: str) -> list[Path]:
-    paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
-    for p in paths:
-        fig.savefig(p, dpi=120)
-    plt.close(fig)
-    return paths
-
-
 def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
     """Tail sup ||Phi|| against sup ||eps||, per control law, with fitted gains."""
     fig, ax = plt.subplots(figsize=(6, 4.5), constrained_layout=True)
@@ -189,7 +182,7 @@ def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
     ax.set_title("ISS gain: tracking error against estimation error")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    return _save(fig, out, "iss_gain"), gains
+    return save_figure(fig, out, "iss_gain"), gains
 
 
 def agents_figure(rows, out: Path) -> list[Path]:
@@ -209,7 +202,7 @@ def agents_figure(rows, out: Path) -> list[Path]:
     ax.set_title("tracking and estimation errors against swarm size")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    return _save(fig, out, "agents_n")
+    return save_figure(fig, out, "agents_n")
 
 
 def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]:
@@ -233,7 +226,7 @@ def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]
     ax1.set_ylabel("exponential rate (1/s)")
     ax1.legend(fontsize=8)
     ax1.set_title("decay rates")
-    return _save(fig, out, "convergence")
+    return save_figure(fig, out, "convergence")
 
 
 def main(argv: list[str] | None = None) -> int:

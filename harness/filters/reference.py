@@ -104,13 +104,14 @@ class DenseKalman:
         self.x_post, self.P_post = self.x.copy(), self.P.copy()
 
 
-class ReferenceDensityFilter:
-    """The density filter (eqs. ``density filter``, ``density Riccati``) on the grid.
-
-    State ``p`` (``M`` cells), ``F_n = (I - dt A(v_n))^{-1}``, ``Q = q dt k I``,
-    ``y = p_KDE``, ``R = r_scale k diag(max(p_KDE, r_floor))``; see
-    :mod:`harness.filters.common` for the derivation.
+class _DenseGridFilter:
+    """What the two reference filters share: set-up, the start from a first KDE, and
+    the L2 traces of ``P`` and ``Q``. ``_kind`` selects ``k`` (0) or ``k_g`` (1) and
+    ``_states`` is the number of states per cell (1 or 2).
     """
+
+    _kind = 0
+    _states = 1
 
     def __init__(
         self,
@@ -128,16 +129,40 @@ class ReferenceDensityFilter:
 
     @property
     def q(self) -> float:
-        """Per-step process-noise variance ``q dt k`` (1 / length^4)."""
-        return self.settings.process_noise * self.dt * self.measurement.constants[0]
+        """Per-step process-noise variance ``q dt k`` (density, 1 / length^4) or
+        ``q dt k_g`` (gradient, 1 / length^6).
+        """
+        return self.settings.process_noise * self.dt * self.measurement.constants[self._kind]
+
+    def _start(self, y0: np.ndarray) -> None:
+        """``x0 = y0``, ``P0 = initial_variance k I`` (or ``k_g I``)."""
+        m = self._states * self.grid.size
+        var = self.settings.initial_variance * self.measurement.constants[self._kind]
+        self.kf = DenseKalman(np.asarray(y0).ravel(), var * np.eye(m), engine=self.engine)
+
+    @property
+    def trace_P(self) -> float:
+        """``trace(P)`` after the last update, times the cell area (the L2 trace)."""
+        assert self.kf is not None
+        return float(np.trace(self.kf.P)) * self.grid.cell_area
+
+    @property
+    def trace_Q(self) -> float:
+        """``trace(Q)`` per step, times the cell area."""
+        return self.q * self._states * self.grid.size * self.grid.cell_area
+
+
+class ReferenceDensityFilter(_DenseGridFilter):
+    """The density filter (eqs. ``density filter``, ``density Riccati``) on the grid.
+
+    State ``p`` (``M`` cells), ``F_n = (I - dt A(v_n))^{-1}``, ``Q = q dt k I``,
+    ``y = p_KDE``, ``R = r_scale k diag(max(p_KDE, r_floor))``; see
+    :mod:`harness.filters.common` for the derivation.
+    """
 
     def initialize(self, p_kde: np.ndarray) -> np.ndarray:
         """Start at ``x0 = p_KDE(0)``, ``P0 = initial_variance k I``."""
-        k, _ = self.measurement.constants
-        m = self.grid.size
-        self.kf = DenseKalman(
-            p_kde.ravel(), self.settings.initial_variance * k * np.eye(m), engine=self.engine
-        )
+        self._start(p_kde)
         return self.estimate
 
     def step(self, p_kde: np.ndarray, v_applied: VelocityField) -> np.ndarray:
@@ -154,19 +179,8 @@ class ReferenceDensityFilter:
         assert self.kf is not None
         return self.kf.x.reshape(self.grid.shape)
 
-    @property
-    def trace_P(self) -> float:
-        """``trace(P)`` after the last update, times the cell area (the L2 trace)."""
-        assert self.kf is not None
-        return float(np.trace(self.kf.P)) * self.grid.cell_area
 
-    @property
-    def trace_Q(self) -> float:
-        """``trace(Q)`` per step, times the cell area."""
-        return self.q * self.grid.size * self.grid.cell_area
-
-
-class ReferenceGradientFilter:
+class ReferenceGradientFilter(_DenseGridFilter):
     """The gradient filter (eqs. ``gradient filter``, ``gradient Riccati``) on the grid.
 
     State ``q`` (``2M``: x then y components), ``F_g = G F_n G^+``, known input
@@ -184,26 +198,16 @@ class ReferenceGradientFilter:
         engine: str = "numpy",
         integrator: Integrator | None = None,
     ) -> None:
-        self.grid, self.dt, self.measurement = grid, dt, measurement
-        self.settings: FilterSettings = measurement.settings
-        self.operator = FokkerPlanck(grid, sigma)
+        super().__init__(grid, sigma, dt, measurement, engine)
         self.integrator = integrator or Integrator.build(grid)
         self.G = grid.gradient_matrix.tocsr()
-        self.engine = engine
-        self.kf: DenseKalman | None = None
 
-    @property
-    def q(self) -> float:
-        """Per-step process-noise variance ``q dt k_g`` (1 / length^6)."""
-        return self.settings.process_noise * self.dt * self.measurement.constants[1]
+    _kind = 1
+    _states = 2
 
     def initialize(self, grad_kde: np.ndarray) -> np.ndarray:
         """Start at ``x0 = grad p_KDE(0)``, ``P0 = initial_variance k_g I``."""
-        _, k_g = self.measurement.constants
-        m = 2 * self.grid.size
-        self.kf = DenseKalman(
-            grad_kde.ravel(), self.settings.initial_variance * k_g * np.eye(m), engine=self.engine
-        )
+        self._start(grad_kde)
         return self.estimate
 
     def transition(self, v_applied: VelocityField) -> tuple[np.ndarray, np.ndarray]:
@@ -240,14 +244,3 @@ class ReferenceGradientFilter:
         """``q_hat``, shape ``(2, ny, nx)``."""
         assert self.kf is not None
         return self.kf.x.reshape(2, *self.grid.shape)
-
-    @property
-    def trace_P(self) -> float:
-        """``trace(P_g)`` after the last update, times the cell area."""
-        assert self.kf is not None
-        return float(np.trace(self.kf.P)) * self.grid.cell_area
-
-    @property
-    def trace_Q(self) -> float:
-        """``trace(Q_g)`` per step, times the cell area."""
-        return self.q * 2 * self.grid.size * self.grid.cell_area
