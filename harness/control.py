@@ -123,6 +123,3 @@ def sampled_data_dt_bound(grid: Grid, alpha: float, ratio: float) -> float:
         return float("inf")
     return 2.0 / (alpha * ratio * lam_max)
 
-
-LAWS = {"paper": paper_law, "heat": heat_law}
-"""Control laws by config name."""

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import datetime as dt_
 import importlib.metadata
-import os
 import platform
 import signal
 import subprocess
@@ -261,8 +260,3 @@ def threading_is_main() -> bool:
     import threading
 
     return threading.current_thread() is threading.main_thread()
-
-
-def env_flag(name: str) -> bool:
-    """True when the environment variable is set to 1/true/yes."""
-    return os.environ.get(name, "").lower() in ("1", "true", "yes")
