@@ -189,14 +189,6 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
         cfg.log.positions_every,
         steps,
     )
-    lam = poincare_constant(loop.grid, target.p)
-    logger.add_metadata(
-        "theory",
-        {
-            "poincare_lambda": repr(lam),
-            "rate_exact": repr((cfg.control.alpha + cfg.dynamics.sigma) * lam),
-        },
-    )
     progress = {"auto": None, "on": True, "off": False}.get(cfg.log.progress, None)
     bar = tqdm(
         total=steps,
@@ -220,6 +212,9 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     t0 = time.perf_counter()
     try:
         with threadpool_limits(1):
+            lam = poincare_constant(loop.grid, target.p)
+            rate = (cfg.control.alpha + cfg.dynamics.sigma) * lam
+            logger.add_metadata("theory", {"poincare_lambda": repr(lam), "rate_exact": repr(rate)})
             logger.write_target(target.p)
             rec = loop.start()
             last = metrics(loop.grid, target, rec)

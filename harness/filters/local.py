@@ -161,6 +161,9 @@ class LocalFilters:
         self.d: np.ndarray | None = None  # density variances
         self.x_g: np.ndarray | None = None  # auxiliary density, q_hat = G x_g
         self.c_g: np.ndarray | None = None  # gradient-grid information (2M)
+        # priors (after predict) of the states and of the covariance diagonals
+        self.x_prior: np.ndarray | None = None
+        self.x_g_prior: np.ndarray | None = None
         self.d_prior: np.ndarray | None = None
         self.c_g_prior: np.ndarray | None = None
 
@@ -177,6 +180,7 @@ class LocalFilters:
             np.ones(2 * g.size), self.poisson.gt @ np.asarray(grad_kde).ravel()
         )
         self.x_g = fit + 1.0 / g.area
+        self.x_prior, self.x_g_prior = self.x.copy(), self.x_g.copy()
         self.d_prior, self.c_g_prior = self.d.copy(), self.c_g.copy()
         return self.estimates
 
@@ -203,6 +207,7 @@ class LocalFilters:
         d = squared_transition(a, dt, self.d) + q * k
         var_g = squared_transition(a, dt, (1.0 / self.c_g).reshape(2, g.size).T).T.ravel()
         c_g = 1.0 / (var_g + q * k_g)
+        self.x_prior, self.x_g_prior = x, x_g
         self.d_prior, self.c_g_prior = d, c_g
         # density update (diagonal, exact for the diagonal prior)
         r = self.measurement.density_variance(p_kde)
