@@ -122,4 +122,3 @@ def sampled_data_dt_bound(grid: Grid, alpha: float, ratio: float) -> float:
     if alpha <= 0 or ratio <= 0:
         return float("inf")
     return 2.0 / (alpha * ratio * lam_max)
-
