@@ -15,7 +15,9 @@ Step ``n -> n + 1`` (``v_n`` was computed at ``t_n`` and is held over the step):
 3. the estimator predicts under ``v_n`` and updates with the measurement;
 4. the control law gives ``v_{n+1}`` from ``(p_hat, q_hat)``.
 
-Errors are measured against the mean-field truth ``p`` (notes section 5).
+Errors are measured against the mean-field truth ``p`` (notes section 5): ``Phi = p -
+p_*``, ``eps = p_hat - p`` and ``eps_g = q_hat - grad p``, the states of the paper's
+interconnected system (eqs. ``tracking error equation`` and ``interconnected system``).
 """
 
 from __future__ import annotations

@@ -1,5 +1,10 @@
 """Fast filters: exact state propagation, local (diagonal) covariance structure.
 
+The paper's density filter (eqs. ``density filter``, ``density Riccati``) and gradient
+filter (eqs. ``gradient filter``, ``gradient Riccati``) in the sampled-data form of
+:mod:`harness.filters.common`, with the covariance kept in a structure that costs
+``O(M)`` per step instead of ``O(M^3)``.
+
 Why. The reference grid filters carry dense covariances at ``O(M^3)`` per step.
 Their state is cheap to propagate (one sparse Fokker-Planck solve); only the
 covariance is expensive. In this problem ``P0``, ``Q``, ``R`` and the measurement
