@@ -42,9 +42,11 @@ RUN_DIR := outputs/reproduce
 reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write its figures to figures/
 	$(PY) -m experiments.closed_loop hydra.run.dir=$(RUN_DIR)
 	$(PY) -m analysis.figures $(RUN_DIR) --out figures
-	$(PY) -m experiments.meanfield_convergence hydra.run.dir=$(RUN_DIR)/meanfield
+	$(PY) -m experiments.closed_loop plant=meanfield estimator=exact log.field_every=100 \
+		hydra.run.dir=$(RUN_DIR)_meanfield
+	$(PY) -m analysis.figures $(RUN_DIR)_meanfield --out figures/meanfield --no-gif
 	@echo "log: $(RUN_DIR)/run.mcap"
-	@echo "figures:"; ls -1 figures/*
+	@echo "figures:"; ls -1 figures/* figures/meanfield/*
 
 STUDIES := iss_gain agents_n conv_grid conv_sigma conv_alpha
 

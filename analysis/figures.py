@@ -6,7 +6,8 @@
   columns four logged times (0, about T/10, T/3 and T).
 * ``fig2.png/.pdf`` (paper's Fig. 2): the target ``p_*`` and ``||p_hat - p_*||`` over
   time on a log scale (every run overlaid; ``||p - p_*||`` of the mean-field truth
-  dashed).
+  dashed; for runs with exact estimates also the theoretical rate ``(alpha + sigma)
+  lambda`` from the log's ``theory`` record, dotted).
 * ``run_<run>.gif``: the swarm over ``p_*`` and ``p_hat`` through the run.
 """
 
@@ -21,10 +22,20 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+import yaml
 from matplotlib.animation import FuncAnimation, PillowWriter
 
 from analysis.load import LogError, RunLog, load_run
 from analysis.plotting import save_figure
+
+
+def _estimator(run: RunLog) -> str:
+    """The estimator named in the log's config record (safe YAML)."""
+    try:
+        cfg = yaml.safe_load(run.metadata.get("config", {}).get("yaml", "")) or {}
+        return str(cfg.get("estimator", {}).get("name", ""))
+    except (yaml.YAMLError, AttributeError):
+        return ""
 
 
 def _name(run: RunLog) -> str:
@@ -100,6 +111,17 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
             color=line.get_color(),
             label=rf"$\|p - p_*\|$ (mean-field) {_name(run)}",
         )
+        if _estimator(run) == "exact" and "theory" in run.metadata:
+            # with exact estimates the theory gives the rate: draw it over the second half
+            rate = float(run.metadata["theory"]["rate_exact"])
+            half = m["t"] >= m["t"][-1] / 2
+            t_ref = m["t"][half]
+            ax1.semilogy(
+                t_ref,
+                m["phi_l2"][half][0] * np.exp(-rate * (t_ref - t_ref[0])),
+                "k:",
+                label=rf"theory $(\alpha+\sigma)\lambda$ = {rate:.3g} 1/s",
+            )
     ax1.set_xlabel("t (s)")
     ax1.set_ylabel("L2 norm (1/length)")
     ax1.set_title("convergence error")

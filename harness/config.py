@@ -74,21 +74,6 @@ class DensityConf:
 
 
 @dataclass
-class MeanFieldConf:
-    """The mean-field closed loop with exact estimates (``make reproduce`` until
-    the agent-level experiment lands).
-    """
-
-    grid: GridConf = field(default_factory=GridConf)
-    dynamics: DynamicsConf = field(default_factory=DynamicsConf)
-    control: ControlConf = field(default_factory=ControlConf)
-    sim: SimConf = field(default_factory=SimConf)
-    target: DensityConf = field(default_factory=DensityConf)
-    init: DensityConf = field(default_factory=lambda: DensityConf(kind="box"))
-    figures_dir: str = "figures"
-
-
-@dataclass
 class PlantConf:
     """``name``: ``agents`` (robots, KDE measurements) or ``meanfield`` (no robots;
     measurements are the truth plus seeded Gaussian noise of the KDE's variance).
@@ -193,7 +178,6 @@ def density_spec(conf: Any) -> dict:
 def register_configs() -> None:
     """Register the schemas with Hydra's ConfigStore."""
     cs = ConfigStore.instance()
-    cs.store(name="meanfield_schema", node=MeanFieldConf)
     cs.store(name="closed_loop_schema", node=ClosedLoopConf)
     cs.store(group="target", name="density_schema", node=DensityConf)
     cs.store(group="init", name="density_schema", node=DensityConf)
