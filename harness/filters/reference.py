@@ -4,7 +4,7 @@ Every grid cell is a state (``M = nx ny`` states for the density, ``2M`` for the
 gradient) and the covariance is a dense matrix, so a step costs ``O(M^3)``. They
 implement the sampled-data form derived in :mod:`harness.filters.common`
 faithfully, are cross-checked against filterpy's ``KalmanFilter`` in the tests,
-and are the yardstick for the fast modal filters. Use them on small grids.
+and are the yardstick for the fast filters (:mod:`.local`). Use them on small grids.
 
 Symbols (filterpy's): ``x`` state, ``P`` covariance, ``F`` transition, ``Q``
 process noise, ``H = I`` measurement matrix, ``R`` measurement covariance,
