@@ -31,7 +31,8 @@ class ConfigError(ValueError):
         super().__init__(f"invalid config: {key}={value!r}: {allowed}")
 
 
-def _number(cfg: Any, key: str) -> float:
+def _lookup(cfg: Any, key: str) -> Any:
+    """The value at a dotted key."""
     node: Any = cfg
     for part in key.split("."):
         node = node[part]
@@ -60,7 +61,7 @@ def validate(cfg: Any) -> None:
         "init.kind": ("uniform", "box", "gaussian_mixture", "default_target"),
     }
     for key, allowed in choices.items():
-        value = _number(cfg, key)
+        value = _lookup(cfg, key)
         _check(value in allowed, key, value, f"one of {', '.join(allowed)}")
     ints = {
         "seed": (0, "an integer >= 0"),
@@ -71,7 +72,7 @@ def validate(cfg: Any) -> None:
         "estimator.modes": (1, "an integer >= 1"),
     }
     for key, (low, allowed) in ints.items():
-        value = _number(cfg, key)
+        value = _lookup(cfg, key)
         _check(isinstance(value, int) and value >= low, key, value, allowed)
     _check(cfg.grid.n <= 512, "grid.n", cfg.grid.n, "at most 512 (memory)")
     positive = (
@@ -85,11 +86,11 @@ def validate(cfg: Any) -> None:
         "control.density_floor",
     )
     for key in positive:
-        value = _number(cfg, key)
+        value = _lookup(cfg, key)
         _check(_finite(value) and value > 0, key, value, "a finite number > 0")
     non_negative = ("control.alpha", "dynamics.sigma", "filter.process_noise", "estimator.delta")
     for key in non_negative:
-        value = _number(cfg, key)
+        value = _lookup(cfg, key)
         _check(_finite(value) and value >= 0, key, value, "a finite number >= 0")
     _check(_finite(cfg.estimator.omega), "estimator.omega", cfg.estimator.omega, "a finite number")
     length = cfg.grid.length

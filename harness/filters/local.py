@@ -135,7 +135,12 @@ def _pcg(
     rz = float(r @ z)
     for it in range(1, maxiter + 1):
         ad = op @ d
-        step = rz / float(d @ ad)
+        curvature = float(d @ ad)
+        if rz <= 0.0 or curvature <= 0.0:
+            # the preconditioned residual vanished (it lies on the constants, which the
+            # operator does not see): converged to round-off
+            return x, it - 1
+        step = rz / curvature
         x += step * d
         r -= step * ad
         if np.linalg.norm(r) <= tol * b_norm:
@@ -209,9 +214,12 @@ class LocalFilters:
         states = implicit_solve(a, dt, np.column_stack([self.x, self.x_g]))
         x, x_g = states[:, 0], states[:, 1]
         q = s.process_noise * dt
-        d = squared_transition(a, dt, self.d) + q * k
-        var_g = squared_transition(a, dt, (1.0 / self.c_g).reshape(2, g.size).T).T.ravel()
-        c_g = 1.0 / (var_g + q * k_g)
+        # one product for the density variances and both gradient components
+        var = squared_transition(
+            a, dt, np.column_stack([self.d, (1.0 / self.c_g).reshape(2, g.size).T])
+        )
+        d = var[:, 0] + q * k
+        c_g = 1.0 / (var[:, 1:].T.ravel() + q * k_g)
         self.x_prior, self.x_g_prior = x, x_g
         self.d_prior, self.c_g_prior = d, c_g
         # density update (diagonal, exact for the diagonal prior)
