@@ -35,7 +35,7 @@ format: $(STAMP) ## Format the code with ruff
 	$(PY) -m ruff check --fix .
 
 bench: $(STAMP) ## Speed benchmarks, each figure next to its target
-	$(PY) -m benchmarks.run
+	$(PY) -m benchmarks.suite
 
 RUN_DIR := outputs/reproduce
 

@@ -22,20 +22,16 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-import yaml
 from matplotlib.animation import FuncAnimation, PillowWriter
 
+from analysis.configs import component, flatten, logged_config
 from analysis.load import LogError, RunLog, load_run
 from analysis.plotting import save_figure
 
 
 def _estimator(run: RunLog) -> str:
-    """The estimator named in the log's config record (safe YAML)."""
-    try:
-        cfg = yaml.safe_load(run.metadata.get("config", {}).get("yaml", "")) or {}
-        return str(cfg.get("estimator", {}).get("name", ""))
-    except (yaml.YAMLError, AttributeError):
-        return ""
+    """The estimator's class name from the log's config record."""
+    return component(flatten(logged_config(run)), "estimator")
 
 
 def _name(run: RunLog) -> str:
@@ -111,7 +107,7 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
             color=line.get_color(),
             label=rf"$\|p - p_*\|$ (mean-field) {_name(run)}",
         )
-        if _estimator(run) == "exact" and "theory" in run.metadata:
+        if _estimator(run) == "ExactEstimator" and "rate_exact" in run.metadata.get("theory", {}):
             # with exact estimates the theory gives the rate: draw it over the second half
             rate = float(run.metadata["theory"]["rate_exact"])
             half = m["t"] >= m["t"][-1] / 2

@@ -2,15 +2,15 @@
 
     python -m analysis.sweep SWEEP_DIR [--out DIR] [--tail 0.25]
 
-Reads every job directory below ``SWEEP_DIR`` that holds a ``run.mcap``: the
-overrides (Hydra's ``.hydra/overrides.yaml``, read with a safe YAML loader), the
-log's metadata (``status``, ``theory``) and its ``/metrics``. Writes
-``sweep.csv`` (one row per job; each override is a column) and figures chosen by what
-the sweep varies:
+Reads every job directory below ``SWEEP_DIR`` that holds a ``run.mcap``, and only the
+log: its ``config`` record (the resolved config), its ``status`` and ``theory`` records
+and its ``/metrics``. Writes ``sweep.csv`` (one row per job; every config key whose
+value differs between the jobs is a column) and figures chosen by what the sweep
+varies:
 
 * ``estimator.delta`` (ISS gain curve, ``iss_gain.png/.pdf``): the tail supremum of
   ``||Phi|| = ||p - p_*||`` against the supremum of ``||eps||``, one curve per control
-  law, with the fitted linear gain;
+  law (grouped by the logged ``control._target_``), with the fitted linear gain;
 * ``agents.n`` (``agents_n.png/.pdf``): tail means of ``||Phi||``, ``||p_hat - p_*||``
   and ``||eps||`` against N;
 * otherwise (``convergence.png/.pdf``): ``||Phi||`` curves overlaid and the fitted
@@ -20,14 +20,14 @@ Statistics (the CSV's columns; norms in 1/length, rates in 1/s): ``phi_tail_mean
 ``phi_tail_sup``, ``phat_tail_mean``, ``eps_tail_mean``, ``eps_g_tail_mean`` over the
 last ``tail`` fraction of the run; ``eps_sup``, ``eps_g_sup`` over the whole run;
 ``rate_fit``, the least-squares slope of ``-log ||Phi||`` over the second half of the
-run; ``rate_theory`` from the log's ``theory`` record; ``wall_s`` from the job's status.
+run; ``rate_theory`` from the log's ``theory`` record; ``wall_s`` (s) from its ``status``
+record.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
-import json
 import math
 import sys
 import warnings
@@ -39,8 +39,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
-import yaml
 
+from analysis.configs import component, flatten, logged_config
 from analysis.load import LogError, LogWarning, load_run
 from analysis.plotting import save_figure
 
@@ -56,21 +56,6 @@ STATS = (
     "rate_theory",
     "t_end",
 )
-
-
-def overrides_of(job_dir: Path) -> dict[str, str]:
-    """The job's overrides as ``{key: value}`` (from ``.hydra/overrides.yaml``)."""
-    path = job_dir / ".hydra" / "overrides.yaml"
-    out: dict[str, str] = {}
-    try:
-        items = yaml.safe_load(path.read_text()) or []
-    except (OSError, yaml.YAMLError):
-        return out
-    for item in items if isinstance(items, list) else []:
-        if isinstance(item, str) and "=" in item:
-            key, value = item.split("=", 1)
-            out[key.lstrip("+~")] = value
-    return out
 
 
 def decay_rate(t: np.ndarray, phi: np.ndarray) -> float:
@@ -107,17 +92,16 @@ def job_stats(run, tail: float) -> dict[str, float]:
 
 
 def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """Rows of the CSV and the decoded metrics per job directory."""
+    """Rows of the CSV and the decoded metrics per job directory.
+
+    Each row holds the job's directory, state, statistics, wall time, the short name
+    of its control law (``law``) and its whole flattened config; :func:`varied` then
+    picks the config keys that differ between jobs.
+    """
     rows, series = [], {}
     for log_path in sorted(sweep_dir.glob("*/run.mcap")):
         job_dir = log_path.parent
-        row: dict[str, Any] = {"dir": job_dir.name, **overrides_of(job_dir)}
-        try:
-            status = json.loads((job_dir / "job_status.json").read_text())
-        except (OSError, ValueError):
-            status = {}
-        row["job"] = status.get("job", "")
-        row["wall_s"] = status.get("wall_s", math.nan)
+        row: dict[str, Any] = {"dir": job_dir.name}
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", LogWarning)
@@ -126,7 +110,11 @@ def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], 
             row["state"] = f"unreadable: {err}"
             rows.append(row)
             continue
+        flat = flatten(logged_config(run))
+        row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
+        row["law"] = component(flat, "control")
         row["state"] = run.state
+        row["wall_s"] = _float(run.metadata.get("status", {}).get("wall_s"))
         if "t" in run.metrics and len(run.metrics["t"]) > 2:
             row.update(job_stats(run, tail))
             series[job_dir.name] = run.metrics
@@ -134,19 +122,49 @@ def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], 
     return rows, series
 
 
+def _float(text: Any) -> float:
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+CONFIG_PREFIX = "cfg:"
+"""Prefix of the config columns in the rows (dropped in the CSV header)."""
+
+
+def varied(rows: list[dict[str, Any]]) -> list[str]:
+    """Config keys (without the prefix) whose values differ between the rows, leaving
+    out the logging and progress keys.
+    """
+    keys = sorted({k for r in rows for k in r if k.startswith(CONFIG_PREFIX)})
+    out = []
+    for k in keys:
+        key = k[len(CONFIG_PREFIX) :]
+        if key.startswith("log."):
+            continue
+        if len({repr(r.get(k)) for r in rows}) > 1:
+            out.append(key)
+    return out
+
+
+def value(row: dict[str, Any], key: str) -> Any:
+    """The row's config value at ``key``."""
+    return row.get(CONFIG_PREFIX + key)
+
+
 def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
-    """Tidy CSV: fixed columns first, then every override key."""
-    fixed = ["job", "dir", "state", *STATS, "wall_s"]
-    keys = sorted({k for r in rows for k in r} - set(fixed))
+    """Tidy CSV: the varied config keys, the law, then the fixed columns."""
+    keys = varied(rows)
+    fixed = ["dir", "state", *STATS, "wall_s"]
     with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=[*keys, *fixed], restval="")
+        writer = csv.DictWriter(f, fieldnames=[*keys, "law", *fixed], restval="")
         writer.writeheader()
-        writer.writerows(rows)
-
-
-def _varied(rows: list[dict[str, Any]]) -> list[str]:
-    keys = sorted({k for r in rows for k in r} - {"job", "dir", "state", "wall_s", *STATS})
-    return [k for k in keys if len({str(r.get(k)) for r in rows}) > 1]
+        for r in rows:
+            out = {k: value(r, k) for k in keys}
+            out["law"] = r.get("law", "")
+            out.update({k: r.get(k, "") for k in fixed})
+            writer.writerow(out)
 
 
 def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
@@ -156,13 +174,13 @@ def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
     groups: dict[str, list] = {}
     for r in rows:
         if "phi_tail_sup" in r:
-            groups.setdefault(r.get("controller", "paper"), []).append(r)
+            groups.setdefault(r.get("law") or "law", []).append(r)
     for law, group in sorted(groups.items()):
-        group.sort(key=lambda r: float(r.get("estimator.delta", 0)))
+        group.sort(key=lambda r: float(value(r, "estimator.delta") or 0))
         x = np.array([r["eps_sup"] for r in group])
         y = np.array([r["phi_tail_sup"] for r in group])
         pos = x > 1e-12
-        (line,) = ax.loglog(x[pos], y[pos], "o-", label=f"{law} law")
+        (line,) = ax.loglog(x[pos], y[pos], "o-", label=law)
         if pos.sum() >= 2:
             gains[law] = float(np.linalg.lstsq(x[pos, None], y[pos], rcond=None)[0][0])
             xs = np.geomspace(x[pos].min(), x[pos].max(), 20)
@@ -187,8 +205,8 @@ def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
 
 def agents_figure(rows, out: Path) -> list[Path]:
     """Tail errors against the number of robots."""
-    rows = sorted((r for r in rows if "phi_tail_mean" in r), key=lambda r: int(r["agents.n"]))
-    n = np.array([int(r["agents.n"]) for r in rows])
+    rows = sorted((r for r in rows if "phi_tail_mean" in r), key=lambda r: value(r, "agents.n"))
+    n = np.array([int(value(r, "agents.n")) for r in rows])
     fig, ax = plt.subplots(figsize=(6, 4.5), constrained_layout=True)
     for key, label in (
         ("phi_tail_mean", r"$\|p - p_*\|$ (mean-field)"),
@@ -205,6 +223,11 @@ def agents_figure(rows, out: Path) -> list[Path]:
     return save_figure(fig, out, "agents_n")
 
 
+def _label(row: dict[str, Any], key: str) -> str:
+    v = value(row, key)
+    return row["dir"] if v is None else str(v)
+
+
 def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]:
     """||Phi|| curves overlaid and fitted against theoretical rates."""
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
@@ -212,7 +235,7 @@ def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]
     done = [r for r in rows if r["dir"] in series]
     for r in done:
         m = series[r["dir"]]
-        ax0.semilogy(m["t"], m["phi_l2"], label=f"{label_key}={r.get(label_key, r['dir'])}")
+        ax0.semilogy(m["t"], m["phi_l2"], label=f"{label_key}={_label(r, label_key)}")
     ax0.set_xlabel("t (s)")
     ax0.set_ylabel(r"$\|p - p_*\|_{L^2}$ (1/length)")
     ax0.grid(True, which="both", alpha=0.3)
@@ -221,7 +244,7 @@ def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]
     x = np.arange(len(done))
     ax1.bar(x - 0.2, [r["rate_fit"] for r in done], 0.4, label="measured (fit, second half)")
     ax1.bar(x + 0.2, [r["rate_theory"] for r in done], 0.4, label=r"$(\alpha+\sigma)\lambda$")
-    ax1.set_xticks(x, [str(r.get(label_key, r["dir"])) for r in done])
+    ax1.set_xticks(x, [_label(r, label_key) for r in done])
     ax1.set_xlabel(label_key)
     ax1.set_ylabel("exponential rate (1/s)")
     ax1.legend(fontsize=8)
@@ -250,17 +273,17 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_csv(rows, out / "sweep.csv")
     written = [out / "sweep.csv"]
-    varied = _varied(rows)
+    keys = varied(rows)
     usable = [r for r in rows if "phi_tail_sup" in r]
-    if usable and "estimator.delta" in varied:
+    if usable and "estimator.delta" in keys:
         paths, gains = iss_figure(usable, out)
         written += paths
         for law, g in gains.items():
-            print(f"fitted ISS gain ({law} law): {g:.4g} (tail sup ||Phi|| per unit sup ||eps||)")
-    elif usable and "agents.n" in varied:
+            print(f"fitted ISS gain ({law}): {g:.4g} (tail sup ||Phi|| per unit sup ||eps||)")
+    elif usable and "agents.n" in keys:
         written += agents_figure(usable, out)
     elif usable:
-        written += convergence_figure(usable, series, varied, out)
+        written += convergence_figure(usable, series, keys, out)
         for r in usable:
             print(
                 f"{r['dir']}: rate {r['rate_fit']:.4g} 1/s measured, "

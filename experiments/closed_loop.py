@@ -6,66 +6,40 @@
 Writes ``run.mcap`` into the Hydra run (or job) directory; see ``harness/mcap_log.py``
 for its contract and ``python -m analysis.figures RUN_DIR`` for the figures. A config
 value that is not allowed stops the app before anything is written, with one line
-naming the key, the value and what is allowed, and exit status 2.
+naming the key, the value and what is allowed, and exit status 2 (the check runs in
+:class:`harness.jobs.CheckCallback`; in a multirun each job checks its own config).
+Hydra's own flags (``--cfg job``, ``--info``, ``--help``, ``-cn``, ``-m``) work as usual.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.errors import HydraException
 from hydra.types import RunMode
 from omegaconf import DictConfig
+from omegaconf.errors import OmegaConfBaseException
 
-from harness.config import register_configs
-from harness.run import Terminated, run
-from harness.sweep import log_state, read_status, write_status
-from harness.validate import ConfigError, check_overrides, validate
-
-register_configs()
+from harness.checks import describe
+from harness.jobs import run_job
+from harness.run import run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
 def main(cfg: DictConfig) -> None:
-    """Validate, run one closed loop and print where its log is.
-
-    In a multirun the job skips itself when its log is already complete, and a
-    failure is recorded rather than raised (see :mod:`harness.sweep`).
-    """
+    """Run one closed loop (or one job of a multirun) and print where its log is."""
     hc = HydraConfig.get()
     out = Path(hc.runtime.output_dir)
-    multirun = hc.mode == RunMode.MULTIRUN
-    if multirun:
-        job = {"job": hc.job.num, "overrides": list(hc.overrides.task)}
-        if log_state(out / "run.mcap") == "completed":
-            write_status(out, state="completed", **job)
-            print(f"job {hc.job.num}: already completed, skipped ({out})")
+    if hc.mode == RunMode.MULTIRUN:
+        result = run_job(cfg, out, hc.job.num, list(hc.overrides.task))
+        if result is None:
             return
-    try:
-        validate(cfg)
-    except ConfigError as err:
-        print(err, file=sys.stderr)
-        if multirun:
-            write_status(out, state="invalid", reason=str(err), **job)
-            return
-        sys.exit(2)
-    if not multirun:
-        result = run(cfg, out)
     else:
-        runs = read_status(out).get("runs", 0) + 1
-        write_status(out, state="running", runs=runs, reason="", **job)
-        try:
-            result = run(cfg, out)
-        except (KeyboardInterrupt, Terminated):
-            write_status(out, state="aborted", reason="interrupted")
-            raise
-        except Exception as err:  # recorded, not raised: the other jobs go on
-            write_status(out, state="aborted", reason=f"{type(err).__name__}: {err}")
-            print(f"job {hc.job.num} failed: {type(err).__name__}: {err}", file=sys.stderr)
-            return
-        write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
+        result = run(cfg, out)
     m = result.last_metrics
     print(
         f"{result.state} after {result.steps} steps in {result.wall_s:.1f} s wall: "
@@ -78,8 +52,11 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    error = check_overrides(sys.argv[1:], "closed_loop")
-    if error:
-        print(error, file=sys.stderr)
+    # Hydra's errors come back to us (not as Hydra's report) so that a config that does
+    # not compose is one line and exit status 2, like every other config error.
+    os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    try:
+        main()
+    except (HydraException, OmegaConfBaseException) as err:
+        print(describe(err, sys.argv[1:]), file=sys.stderr)
         sys.exit(2)
-    main()

@@ -1,8 +1,10 @@
-"""Density feedback laws: estimates in, velocity field on the grid out.
+"""Density feedback laws (config group ``control``): estimates in, velocity field out.
 
-Both laws take the density estimate ``p_hat`` (``(ny, nx)``, 1 / length^2), the
-gradient estimate ``q_hat`` (``(2, ny, nx)``, 1 / length^3), the target (``p_*``,
-``grad p_*`` and ``log p_*`` on the grid, see :class:`harness.densities.Target`),
+:class:`PaperControl` (``control=paper``) and :class:`HeatControl` (``control=heat``)
+implement :class:`harness.components.Control`; the functions :func:`paper_law` and
+:func:`heat_law` hold the equations. Both laws take the density estimate ``p_hat``
+(``(ny, nx)``, 1 / length^2), the gradient estimate ``q_hat`` (``(2, ny, nx)``,
+1 / length^3), the target (``p_*``, ``grad p_*`` and ``log p_*`` on the grid, see :class:`harness.densities.Target`),
 the gain ``alpha >= 0`` (length^4 / time, so that ``alpha grad(p / p_*)`` is a
 velocity) and the noise intensity ``sigma >= 0`` (length^2 / time), and return a
 :class:`~harness.velocity.VelocityField` (length / time).
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from harness.components import flag, number
 from harness.densities import Target
 from harness.grid import Grid
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
@@ -92,17 +95,18 @@ def heat_law(
     return VelocityField.from_centres(centres)
 
 
-def sampled_data_dt_bound(grid: Grid, alpha: float, ratio: float) -> float:
-    """Largest ``dt`` for which the held feedback term does not overshoot at grid scale.
+def sampled_data_dt_bound(grid: Grid, diffusivity: float) -> float:
+    """Largest ``dt`` for which the held feedback does not overshoot at grid scale.
 
     The control is computed once per step and held for ``dt`` (sampled data). With
     exact estimates the feedback term of the paper's law acts as the nonlinear
-    diffusion ``div(alpha p grad(p / p_*))``, of local diffusivity ``alpha p / p_*``.
+    diffusion ``div(alpha p grad(p / p_*))``, of local diffusivity ``D = alpha p /
+    p_*`` (:meth:`PaperControl.feedback_diffusivity` gives its largest value ``D``).
     Held over ``dt``, a grid-scale mode of the discrete Laplacian (eigenvalue up to
-    ``lambda_max = 4/dx^2 + 4/dy^2``) is multiplied by ``1 - dt alpha r lambda_max``
-    with ``r = max p / p_*``, which leaves ``[-1, 1]`` when
+    ``lambda_max = 4/dx^2 + 4/dy^2``) is multiplied by ``1 - dt D lambda_max``, which
+    leaves ``[-1, 1]`` when
 
-        dt > 2 / (alpha r lambda_max).
+        dt > 2 / (D lambda_max).
 
     The bound concerns the physical sampled-data loop, not the Fokker-Planck
     stepper (which is implicit and stable for every ``dt``): the robots receive
@@ -111,14 +115,81 @@ def sampled_data_dt_bound(grid: Grid, alpha: float, ratio: float) -> float:
 
     Args:
         grid: The grid.
-        alpha: Feedback gain (length^4 / time).
-        ratio: ``r = max p / p_*`` over the run (dimensionless; initially
-            ``max p_0 / min p_*``).
+        diffusivity: ``D``, the largest feedback diffusivity (length^2 / s).
 
     Returns:
-        The bound in time units (``inf`` when ``alpha = 0``).
+        The bound in time units (``inf`` when ``D = 0``).
     """
     lam_max = 4.0 / grid.dx**2 + 4.0 / grid.dy**2
-    if alpha <= 0 or ratio <= 0:
+    if diffusivity <= 0:
         return float("inf")
-    return 2.0 / (alpha * ratio * lam_max)
+    return 2.0 / (diffusivity * lam_max)
+
+
+class PaperControl:
+    """The paper's law (``control=paper``), :func:`paper_law` with fixed gains.
+
+    Args:
+        target: The target on the grid (run-time argument).
+        alpha: Feedback gain ``>= 0`` (length^4 / s).
+        sigma: The robots' noise intensity ``>= 0`` (length^2 / s), for the drift term.
+    """
+
+    def __init__(self, target: Target, alpha: float, sigma: float) -> None:
+        self.target = target
+        self.alpha = number("alpha", alpha, 0.0)
+        self.sigma = number("sigma", sigma, 0.0)
+
+    def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
+        """The velocity by eq. ``modified density feedback law using estimates``."""
+        return paper_law(p_hat, q_hat, self.target, self.alpha, self.sigma)
+
+    def feedback_diffusivity(self, p0: np.ndarray) -> float:
+        """``alpha max(p0 / p_*)``: the feedback term is the nonlinear diffusion
+        ``div(alpha p grad(p / p_*))`` of local diffusivity ``alpha p / p_*``.
+        """
+        return self.alpha * float(np.max(p0 / self.target.p))
+
+
+class HeatControl:
+    """The prior heat-equation law (``control=heat``), :func:`heat_law` with fixed gains.
+
+    Args:
+        target: The target on the grid (run-time argument).
+        alpha: Feedback gain ``>= 0`` (length^2 / s times density, as in :func:`heat_law`).
+        sigma: Noise intensity ``>= 0`` (length^2 / s).
+        density_floor: ``c > 0`` (1 / length^2).
+        noise_compensation: Include the ``sigma q_hat / p_hat`` term.
+    """
+
+    def __init__(
+        self,
+        target: Target,
+        alpha: float,
+        sigma: float,
+        density_floor: float = 0.1,
+        noise_compensation: bool = True,
+    ) -> None:
+        self.target = target
+        self.alpha = number("alpha", alpha, 0.0)
+        self.sigma = number("sigma", sigma, 0.0)
+        self.density_floor = number("density_floor", density_floor, 0.0, strict=True)
+        self.noise_compensation = flag("noise_compensation", noise_compensation)
+
+    def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
+        """The heat-equation law of :func:`heat_law`."""
+        return heat_law(
+            p_hat,
+            q_hat,
+            self.target,
+            self.alpha,
+            self.sigma,
+            density_floor=self.density_floor,
+            noise_compensation=self.noise_compensation,
+        )
+
+    def feedback_diffusivity(self, p0: np.ndarray) -> float:
+        """``alpha max(p0 / max(p0, c))``: with exact estimates the feedback flux is
+        ``-alpha p / max(p, c) grad(p - p_*)``.
+        """
+        return self.alpha * float(np.max(p0 / np.maximum(p0, self.density_floor)))

@@ -16,25 +16,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from math import erf, sqrt
-from typing import Protocol
 
 import numpy as np
 
+from harness.components import Density, number, require
 from harness.grid import Grid
 
-
-class Density(Protocol):
-    """What a target or initial density provides."""
-
-    def on_grid(self, grid: Grid) -> np.ndarray:
-        """Cell values, shape ``(ny, nx)``, with grid integral 1."""
-        ...
-
-    def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
-        """``n`` positions drawn from the density on the grid's domain, shape ``(2, n)``
-        (row 0: x, row 1: y).
-        """
-        ...
+__all__ = ["DEFAULT_TARGET", "Box", "Density", "GaussianMixture", "Target", "Uniform"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +51,12 @@ class Box:
     x1: float = 0.85
     y0: float = 0.15
     y1: float = 0.85
+
+    def __post_init__(self) -> None:
+        for name in ("x0", "x1", "y0", "y1"):
+            object.__setattr__(self, name, number(name, getattr(self, name)))
+        require(self.x1 > self.x0, "x1", self.x1, f"a number > x0 = {self.x0}")
+        require(self.y1 > self.y0, "y1", self.y1, f"a number > y0 = {self.y0}")
 
     def _check(self, grid: Grid) -> None:
         if not (
@@ -113,21 +107,37 @@ class GaussianMixture:
     _w: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        k = len(self.means)
-        if k == 0 or len(self.stds) != k or len(self.weights) != k:
-            raise ValueError(
-                f"mixture needs equally many means, stds and weights (>= 1), got "
-                f"{len(self.means)}, {len(self.stds)}, {len(self.weights)}"
+        k = len(self.means) if isinstance(self.means, Sequence) else 0
+        require(k >= 1, "means", self.means, "a list of at least one (x, y) pair")
+        require(
+            isinstance(self.stds, Sequence) and len(self.stds) == k,
+            "stds",
+            self.stds,
+            f"a list of {k} widths, one per mean",
+        )
+        require(
+            isinstance(self.weights, Sequence) and len(self.weights) == k,
+            "weights",
+            self.weights,
+            f"a list of {k} weights, one per mean",
+        )
+        for m in self.means:
+            require(
+                isinstance(m, Sequence) and len(m) == 2,
+                "means",
+                self.means,
+                "a list of (x, y) pairs",
             )
-        if any(len(m) != 2 for m in self.means):
-            raise ValueError(f"each mean must be an (x, y) pair, got {self.means}")
-        if any(not (s > 0) for s in self.stds):
-            raise ValueError(f"stds must be > 0, got {self.stds}")
-        if any(not (w > 0) for w in self.weights):
-            raise ValueError(f"weights must be > 0, got {self.weights}")
-        if not 0 < self.floor <= 1:
-            raise ValueError(f"floor must be in (0, 1], got {self.floor}")
-        w = np.asarray(self.weights, dtype=float)
+        means = tuple((number("means", m[0]), number("means", m[1])) for m in self.means)
+        stds = tuple(number("stds", s_, 0.0, strict=True) for s_ in self.stds)
+        weights = tuple(number("weights", w, 0.0, strict=True) for w in self.weights)
+        floor = number("floor", self.floor, 0.0, strict=True)
+        require(floor <= 1, "floor", self.floor, "a number in (0, 1]")
+        object.__setattr__(self, "means", means)
+        object.__setattr__(self, "stds", stds)
+        object.__setattr__(self, "weights", weights)
+        object.__setattr__(self, "floor", floor)
+        w = np.asarray(weights, dtype=float)
         object.__setattr__(self, "_w", w / w.sum())
 
     def mixture(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -189,32 +199,6 @@ DEFAULT_TARGET = GaussianMixture(
 def _overlap(a0: np.ndarray, a1: np.ndarray, b0: float, b1: float) -> np.ndarray:
     """Length of the overlap of intervals ``[a0, a1]`` and ``[b0, b1]``."""
     return np.clip(np.minimum(a1, b1) - np.maximum(a0, b0), 0.0, None)
-
-
-def make_density(spec: dict) -> Density:
-    """Build a density from a plain mapping with a ``kind`` key.
-
-    Kinds: ``uniform``; ``box`` (keys ``x0, x1, y0, y1``); ``gaussian_mixture``
-    (keys ``means``, ``stds``, ``weights``, ``floor``); ``default_target``.
-    """
-    spec = dict(spec)
-    kind = spec.pop("kind", None)
-    if kind == "uniform":
-        return Uniform()
-    if kind == "box":
-        return Box(**{k: float(v) for k, v in spec.items()})
-    if kind == "gaussian_mixture":
-        return GaussianMixture(
-            means=tuple(tuple(float(c) for c in m) for m in spec["means"]),
-            stds=tuple(float(s) for s in spec["stds"]),
-            weights=tuple(float(w) for w in spec["weights"]),
-            floor=float(spec.get("floor", 0.2)),
-        )
-    if kind == "default_target":
-        return DEFAULT_TARGET
-    raise ValueError(
-        f"unknown density kind {kind!r}; allowed: uniform, box, gaussian_mixture, default_target"
-    )
 
 
 @dataclass(frozen=True)

@@ -1,109 +1,55 @@
-"""The estimator interface of the run loop: ``filters`` | ``kde`` | ``exact`` | ``injected``.
+"""Estimators (config group ``estimator``): ``filters`` | ``kde`` | ``exact`` | ``injected``.
 
-Each step the run loop hands an estimator a :class:`StepInput` (the KDE of the
-swarm, the velocity applied over the last interval and its Fokker-Planck matrix,
-and the mean-field truth) and gets back an :class:`Estimate` ``(p_hat, q_hat)``
-with diagnostics. Only ``exact`` and ``injected`` read the truth; they exist for
-theory checks and ISS gain curves.
+Each step the loop hands an estimator a :class:`~harness.records.StepInput` (the
+plant's measurement, the velocity applied over the last interval and its
+Fokker-Planck matrix, and the plant's mean-field density) and gets back an
+:class:`~harness.records.Estimate` ``(p_hat, q_hat)`` with diagnostics. Only ``exact``
+and ``injected`` read the mean-field density; they exist for theory checks and ISS
+gain curves. All implement :class:`harness.components.Estimator` and take the run-time
+arguments ``grid`` and ``model`` (the run's
+:class:`~harness.fokker_planck.FokkerPlanck`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Protocol
-
 import numpy as np
-import scipy.sparse as sp
 
-from harness.filters.common import FilterSettings, Integrator, MeasurementModel
-from harness.filters.local import LocalFilters
-from harness.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
+from harness.components import ParameterError, integer, number
+from harness.filters.common import FilterSettings, MeasurementModel
+from harness.filters.engines import FilterEngine
+from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.velocity import VelocityField
-
-
-@dataclass(frozen=True)
-class StepInput:
-    """What an estimator may use at time ``t`` (s).
-
-    Attributes:
-        t: Time (s).
-        p_kde: KDE of the swarm ``(ny, nx)`` (1 / length^2).
-        grad_kde: Its gradient ``(2, ny, nx)`` (1 / length^3).
-        v_applied: Velocity applied over the last interval (None at ``t = 0``).
-        a: ``A(v_applied)``, the Fokker-Planck matrix (None at ``t = 0``).
-        p_true: Mean-field truth ``(ny, nx)``; only ``exact`` and ``injected`` read it.
-    """
-
-    t: float
-    p_kde: np.ndarray
-    grad_kde: np.ndarray
-    v_applied: VelocityField | None
-    a: sp.csr_matrix | None
-    p_true: np.ndarray | None
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """Estimates and diagnostics.
-
-    Attributes:
-        p_hat: Density estimate ``(ny, nx)`` (1 / length^2).
-        q_hat: Gradient estimate ``(2, ny, nx)`` (1 / length^3).
-        trace_P: L2 trace of the density filter's covariance (1 / length^2), or None.
-        trace_Q: L2 trace of its process noise per step (1 / length^2), or None.
-        trace_P_grad: Same for the gradient filter (1 / length^4), or None.
-        trace_Q_grad: Same for the gradient filter (1 / length^4), or None.
-    """
-
-    p_hat: np.ndarray
-    q_hat: np.ndarray
-    trace_P: float | None = None
-    trace_Q: float | None = None
-    trace_P_grad: float | None = None
-    trace_Q_grad: float | None = None
-
-
-class Estimator(Protocol):
-    """Turns measurements into ``(p_hat, q_hat)``."""
-
-    name: str
-    uses_kde: bool
-
-    def initialize(self, inp: StepInput) -> Estimate:
-        """First estimate, at ``t = 0``."""
-        ...
-
-    def step(self, inp: StepInput) -> Estimate:
-        """Estimate at a later step."""
-        ...
+from harness.records import Estimate, StepInput
 
 
 class KDEEstimator:
-    """``p_hat = p_KDE``, ``q_hat = grad p_KDE``: no filter."""
+    """``p_hat = p_KDE``, ``q_hat = grad p_KDE``: no filter (``estimator=kde``)."""
 
-    name = "kde"
     uses_kde = True
+
+    def __init__(self, grid: Grid, model: FokkerPlanck) -> None:
+        self.grid = grid
 
     def initialize(self, inp: StepInput) -> Estimate:
         """The raw KDE."""
+        assert inp.p_kde is not None and inp.grad_kde is not None
         return Estimate(inp.p_kde, inp.grad_kde)
 
     step = initialize
 
 
 class ExactEstimator:
-    """``p_hat = p``, ``q_hat = G p`` with the mean-field truth ``p`` (theory checks)."""
+    """``p_hat = p``, ``q_hat = G p`` with the mean-field density ``p`` (theory checks,
+    ``estimator=exact``).
+    """
 
-    name = "exact"
     uses_kde = False
 
-    def __init__(self, grid: Grid) -> None:
+    def __init__(self, grid: Grid, model: FokkerPlanck) -> None:
         self.grid = grid
 
     def initialize(self, inp: StepInput) -> Estimate:
-        """The truth and its grid gradient."""
-        assert inp.p_true is not None
+        """The mean-field density and its grid gradient."""
         return Estimate(inp.p_true, self.grid.gradient(inp.p_true))
 
     step = initialize
@@ -120,23 +66,33 @@ class InjectedEstimator:
     ``rng``. So ``||eps|| = ||eps_g|| = delta`` at every step; the error rotates
     between two shapes with angular frequency ``omega`` (rad / s).
 
+    ``estimator=injected``.
+
     Args:
-        grid: The grid.
+        grid, model: Run-time arguments.
         delta: Error size ``>= 0`` (1 / length for ``eps``; 1 / length^2 for ``eps_g``,
             the same number).
-        rng: Generator for the error shapes.
+        seed: Seed of the error shapes (the run's ``seed``; the shapes use the stream
+            ``[seed, 1]``, apart from the plant's).
         omega: Angular frequency (rad / s).
-        modes: Highest cosine mode per axis in the shapes.
+        modes: Highest cosine mode per axis in the shapes (``>= 1``).
     """
 
-    name = "injected"
     uses_kde = False
 
     def __init__(
-        self, grid: Grid, delta: float, rng: np.random.Generator, omega: float = 0.1, modes: int = 4
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        delta: float,
+        seed: int,
+        omega: float = 0.1,
+        modes: int = 4,
     ) -> None:
-        if not (np.isfinite(delta) and delta >= 0):
-            raise ValueError(f"estimator.delta must be >= 0, got {delta}")
+        delta = number("delta", delta, 0.0)
+        omega = number("omega", omega)
+        modes = integer("modes", modes, 1)
+        rng = np.random.default_rng([integer("seed", seed, 0), 1])
         self.grid, self.delta, self.omega = grid, delta, omega
         x, y = grid.mesh
         lx, ly = grid.x1 - grid.x0, grid.y1 - grid.y0
@@ -165,8 +121,7 @@ class InjectedEstimator:
         return self.delta * e, self.delta * ge / self.grid.l2(ge)
 
     def initialize(self, inp: StepInput) -> Estimate:
-        """Truth plus the error at ``inp.t``."""
-        assert inp.p_true is not None
+        """Mean-field density plus the error at ``inp.t``."""
         eps, eps_g = self.error(inp.t)
         return Estimate(inp.p_true + eps, self.grid.gradient(inp.p_true) + eps_g)
 
@@ -174,58 +129,63 @@ class InjectedEstimator:
 
 
 class FilterEstimator:
-    """The paper's two filters, fast (``local``) or reference (``reference``, or the
-    reference with filterpy as the engine, ``filterpy``).
+    """The paper's two filters on the KDE (``estimator=filters``): eqs. ``density
+    filter``, ``density Riccati``, ``gradient filter``, ``gradient Riccati``.
+
+    The engine is chosen by name from :class:`harness.filters.engines.FilterEngine`'s
+    registry: ``local`` (fast, default), ``reference`` (dense) or ``filterpy`` (dense,
+    filterpy's ``KalmanFilter`` doing the algebra).
+
+    Args:
+        grid, model: Run-time arguments (the model gives ``sigma``).
+        method: Engine name (``filter.method``).
+        robots: Swarm size ``N`` of the KDE noise constants ``k``, ``k_g``.
+        bandwidth: KDE bandwidth ``h`` (length).
+        dt: Measurement period (s).
+        process_noise, r_scale, r_floor, initial_variance: As
+            :class:`harness.filters.common.FilterSettings` (``filter.*``).
     """
 
-    name = "filters"
     uses_kde = True
 
     def __init__(
         self,
         grid: Grid,
-        sigma: float,
-        dt: float,
-        n_robots: int,
+        model: FokkerPlanck,
+        method: str,
+        robots: int,
         bandwidth: float,
-        settings: FilterSettings,
-        method: str = "local",
+        dt: float,
+        process_noise: float = 0.1,
+        r_scale: float = 1.0,
+        r_floor: float = 0.05,
+        initial_variance: float = 10.0,
     ) -> None:
-        if method not in ("local", "reference", "filterpy"):
-            raise ValueError(f"filter.method must be local, reference or filterpy, got {method!r}")
-        self.method = method
-        model = MeasurementModel(n_robots, bandwidth, settings)
-        if method == "local":
-            self.fast = LocalFilters(grid, sigma, dt, model)
-        else:
-            engine = "numpy" if method == "reference" else "filterpy"
-            self.density = ReferenceDensityFilter(grid, sigma, dt, model, engine=engine)
-            self.gradient = ReferenceGradientFilter(
-                grid, sigma, dt, model, engine=engine, integrator=Integrator.build(grid)
-            )
+        engines = sorted(FilterEngine.registry)
+        if method not in FilterEngine.registry:
+            raise ParameterError("method", method, f"one of {', '.join(engines)}")
+        settings = FilterSettings(
+            process_noise=number("process_noise", process_noise, 0.0),
+            r_scale=number("r_scale", r_scale, 0.0, strict=True),
+            r_floor=number("r_floor", r_floor, 0.0, strict=True),
+            initial_variance=number("initial_variance", initial_variance, 0.0, strict=True),
+        )
+        measurement = MeasurementModel(
+            integer("robots", robots, 1), number("bandwidth", bandwidth, 0.0, strict=True), settings
+        )
+        dt = number("dt", dt, 0.0, strict=True)
+        self.engine = FilterEngine.named(method)(grid, model.sigma, dt, measurement)
 
     def _estimate(self, p_hat: np.ndarray, q_hat: np.ndarray) -> Estimate:
-        if self.method == "local":
-            (tp, tg), (qp, qg) = self.fast.trace_P, self.fast.trace_Q
-        else:
-            tp, tg = self.density.trace_P, self.gradient.trace_P
-            qp, qg = self.density.trace_Q, self.gradient.trace_Q
-        return Estimate(p_hat, q_hat, tp, qp, tg, qg)
+        return Estimate(p_hat, q_hat, *self.engine.traces)
 
     def initialize(self, inp: StepInput) -> Estimate:
         """Start both filters from the first KDE."""
-        if self.method == "local":
-            return self._estimate(*self.fast.initialize(inp.p_kde, inp.grad_kde))
-        return self._estimate(
-            self.density.initialize(inp.p_kde), self.gradient.initialize(inp.grad_kde)
-        )
+        assert inp.p_kde is not None and inp.grad_kde is not None
+        return self._estimate(*self.engine.initialize(inp.p_kde, inp.grad_kde))
 
     def step(self, inp: StepInput) -> Estimate:
         """Predict under the applied velocity, update with the KDE."""
         assert inp.v_applied is not None
-        if self.method == "local":
-            return self._estimate(*self.fast.step(inp.p_kde, inp.grad_kde, inp.v_applied, inp.a))
-        return self._estimate(
-            self.density.step(inp.p_kde, inp.v_applied),
-            self.gradient.step(inp.grad_kde, inp.p_kde, inp.v_applied),
-        )
+        assert inp.p_kde is not None and inp.grad_kde is not None
+        return self._estimate(*self.engine.step(inp.p_kde, inp.grad_kde, inp.v_applied, inp.a))

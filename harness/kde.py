@@ -128,6 +128,8 @@ class KDE:
         exact_max_robots: ``auto`` uses ``exact`` up to this many robots.
     """
 
+    METHODS = ("auto", "exact", "binned")
+
     grid: Grid
     bandwidth: float
     mirror: bool = True

@@ -12,7 +12,7 @@ Topics (a topic that does not apply to the plant or estimator is absent):
 * ``/fields/velocity``: fields ``vx``, ``vy`` (length / s), the cell-centre values;
 * ``/swarm/positions``: ``foxglove.PointCloud`` with float32 ``x, y, z`` (z = 0);
 * ``/metrics``: JSON (schema encoding ``jsonschema``), one message per step, keys of
-  :func:`harness.loop.metrics` (``null`` where not applicable).
+  :func:`harness.metrics.metrics` (``null`` where not applicable).
 
 Grids follow ``foxglove.Grid``: ``column_count = nx`` cells along x, rows along y
 starting at the pose origin ``(x0, y0, 0)``, ``cell_size = (dx, dy)``, little-endian
@@ -25,7 +25,7 @@ time; the only wall-clock values in the file), ``theory`` (``poincare_lambda``, 
 ``p_*``-weighted Poincare constant on the grid in 1 / length^2, and ``rate_exact`` =
 ``(alpha + sigma) lambda`` in 1 / s, the decay rate with exact estimates) and
 ``status`` (key ``state``: ``completed`` | ``aborted`` | ``diverged``, key
-``reason``), written just before the
+``reason``, key ``wall_s``: the run's wall time in s), written just before the
 file is finished. :meth:`McapLogger.finalize` always runs (the run loop calls it in a
 ``finally`` block), so the summary and index are written also after an exception.
 """
@@ -47,22 +47,8 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
 from harness.grid import Grid
-from harness.loop import StepRecord
-
-METRIC_KEYS = (
-    "t",
-    "phi_l2",
-    "phat_target_l2",
-    "eps_l2",
-    "eps_g_l2",
-    "kde_l2",
-    "lyapunov",
-    "mass",
-    "trace_P",
-    "trace_Q",
-    "trace_P_grad",
-    "trace_Q_grad",
-)
+from harness.metrics import ALWAYS_NUMBERS, METRIC_KEYS
+from harness.records import StepRecord
 
 METRICS_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -70,11 +56,7 @@ METRICS_SCHEMA = {
     "description": "Per-step metrics of a densityloop run; units in the README.",
     "type": "object",
     "properties": {
-        key: (
-            {"type": "number"}
-            if key in ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
-            else {"type": ["number", "null"]}
-        )
+        key: ({"type": "number"} if key in ALWAYS_NUMBERS else {"type": ["number", "null"]})
         for key in METRIC_KEYS
     },
     "required": list(METRIC_KEYS),
@@ -225,9 +207,9 @@ class McapLogger:
         if rec.step % self.field_every == 0 or last:
             t = rec.t
             self.write_grid("/fields/p_true", t, rec.p_true)
-            if rec.p_meas is not None and rec.grad_meas is not None:
-                self.write_grid("/fields/p_kde", t, rec.p_meas)
-                self.write_grid("/fields/grad_kde", t, rec.grad_meas)
+            if rec.measurement is not None:
+                self.write_grid("/fields/p_kde", t, rec.measurement.p)
+                self.write_grid("/fields/grad_kde", t, rec.measurement.grad)
             self.write_grid("/fields/p_hat", t, rec.estimate.p_hat)
             self.write_grid("/fields/grad_hat", t, rec.estimate.q_hat)
             self.write_grid("/fields/velocity", t, rec.velocity.centres)
@@ -237,13 +219,18 @@ class McapLogger:
                 "/swarm/positions", rec.t, msg.SerializeToString(), self._points_schema, "protobuf"
             )
 
-    def finalize(self, state: str, reason: str = "") -> None:
-        """Write the ``status`` record, the summary and index, and close the file."""
+    def finalize(self, state: str, reason: str = "", wall_s: float | None = None) -> None:
+        """Write the ``status`` record (``state``, ``reason`` and, when given, the run's
+        wall time ``wall_s`` in s), the summary and index, and close the file.
+        """
         if self._finished:
             return
         self._finished = True
+        status = {"state": state, "reason": reason}
+        if wall_s is not None:
+            status["wall_s"] = f"{wall_s:.3f}"
         try:
-            self._writer.add_metadata("status", {"state": state, "reason": reason})
+            self._writer.add_metadata("status", status)
             self._writer.finish()
         finally:
             self._file.close()

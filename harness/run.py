@@ -1,10 +1,10 @@
-"""Build a closed loop from a config and run it to a finished ``run.mcap``.
+"""Run a closed loop built from a config to a finished ``run.mcap``.
 
-The loop (:mod:`harness.loop`) advances the plant, the estimator and the law; the
-trackers observe each step and never steer: metrics, the divergence guard and the
-MCAP logger. Whatever happens, the log is finalised with a ``status`` record:
-``completed``; ``diverged`` (non-finite values, negative density or lost mass,
-with the reason); or ``aborted`` (an exception, Ctrl-C or SIGTERM, re-raised after
+:func:`harness.build.build` builds the components; the loop (:mod:`harness.loop`)
+advances the plant, the estimator and the control; the observers (metrics, the
+divergence guard and the MCAP logger) see each step and never steer. Whatever happens,
+the log is finalised with a ``status`` record: ``completed``; ``diverged`` (non-finite
+values, negative density or lost mass, with the reason); or ``aborted`` (an exception, Ctrl-C or SIGTERM, re-raised after
 the log is closed).
 """
 
@@ -26,22 +26,11 @@ from omegaconf import DictConfig, OmegaConf
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from harness.agents import Swarm
-from harness.config import density_spec
-from harness.densities import Target, make_density
-from harness.estimators import (
-    Estimator,
-    ExactEstimator,
-    FilterEstimator,
-    InjectedEstimator,
-    KDEEstimator,
-)
-from harness.filters.common import FilterSettings
+from harness.build import build
 from harness.fokker_planck import NumericalError
-from harness.grid import Grid
-from harness.kde import KDE
-from harness.loop import ClosedLoop, ControlLaw, metrics
+from harness.loop import ClosedLoop
 from harness.mcap_log import McapLogger
+from harness.metrics import metrics
 from harness.theory import poincare_constant
 
 PACKAGES = (
@@ -107,82 +96,23 @@ def provenance(seed: int) -> dict[str, str]:
     return info
 
 
-def build_loop(cfg: DictConfig, rng: np.random.Generator) -> tuple[ClosedLoop, Target]:
-    """Grid, target, plant, KDE, estimator and law from a closed-loop config."""
-    grid = Grid.square(cfg.grid.n, cfg.grid.length)
-    target = Target.from_density(grid, make_density(density_spec(cfg.target)))
-    init = make_density(density_spec(cfg.init))
-    sigma, dt = cfg.dynamics.sigma, cfg.sim.dt
-    swarm = kde = None
-    if cfg.plant.name == "agents":
-        swarm = Swarm(grid, init.sample(cfg.agents.n, grid, rng), sigma)
-        kde = KDE(grid, cfg.kde.bandwidth, mirror=cfg.kde.mirror, method=cfg.kde.method)
-    elif cfg.plant.name != "meanfield":
-        raise ValueError(f"plant must be agents or meanfield, got {cfg.plant.name!r}")
-    estimator: Estimator
-    name = cfg.estimator.name
-    if name == "filters":
-        settings = FilterSettings(
-            process_noise=cfg.filter.process_noise,
-            r_scale=cfg.filter.r_scale,
-            r_floor=cfg.filter.r_floor,
-            initial_variance=cfg.filter.initial_variance,
-        )
-        estimator = FilterEstimator(
-            grid, sigma, dt, cfg.agents.n, cfg.kde.bandwidth, settings, cfg.filter.method
-        )
-    elif name == "kde":
-        estimator = KDEEstimator()
-    elif name == "exact":
-        estimator = ExactEstimator(grid)
-    elif name == "injected":
-        estimator = InjectedEstimator(
-            grid,
-            cfg.estimator.delta,
-            np.random.default_rng([cfg.seed, 1]),
-            omega=cfg.estimator.omega,
-            modes=cfg.estimator.modes,
-        )
-    else:
-        raise ValueError(f"estimator must be filters, kde, exact or injected, got {name!r}")
-    options = {}
-    if cfg.control.law == "heat":
-        options = {
-            "density_floor": cfg.control.density_floor,
-            "noise_compensation": cfg.control.noise_compensation,
-        }
-    law = ControlLaw(cfg.control.law, target, cfg.control.alpha, sigma, **options)
-    loop = ClosedLoop(
-        grid,
-        target,
-        init.on_grid(grid),
-        estimator,
-        law,
-        sigma,
-        dt,
-        rng,
-        swarm=swarm,
-        kde=kde,
-        n_robots=cfg.agents.n,
-        bandwidth=cfg.kde.bandwidth,
-    )
-    return loop, target
-
-
 def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     """Run the closed loop of ``cfg`` and write ``out_dir / 'run.mcap'``.
 
     Raises:
+        ConfigError: before anything is written, for a value that is not allowed.
         KeyboardInterrupt, Terminated, Exception: re-raised after the log is
             finalised with status ``aborted``.
     """
+    parts = build(cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
-    loop, target = build_loop(cfg, rng)
+    target = parts.target
+    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, cfg.sim.dt, rng)
     logger = McapLogger(
         out_dir / "run.mcap",
-        loop.grid,
+        parts.grid,
         OmegaConf.to_yaml(cfg, resolve=True),
         provenance(cfg.seed),
         cfg.log.field_every,
@@ -213,8 +143,11 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     try:
         with threadpool_limits(1):
             lam = poincare_constant(loop.grid, target.p)
-            rate = (cfg.control.alpha + cfg.dynamics.sigma) * lam
-            logger.add_metadata("theory", {"poincare_lambda": repr(lam), "rate_exact": repr(rate)})
+            theory = {"poincare_lambda": repr(lam)}
+            alpha = getattr(parts.control, "alpha", None)
+            if isinstance(alpha, float):  # laws with a gain alpha: the exact-estimate rate
+                theory["rate_exact"] = repr((alpha + cfg.dynamics.sigma) * lam)
+            logger.add_metadata("theory", theory)
             logger.write_target(target.p)
             rec = loop.start()
             last = metrics(loop.grid, target, rec)
@@ -242,7 +175,7 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
         raise
     finally:
         bar.close()
-        logger.finalize(state, reason)
+        logger.finalize(state, reason, time.perf_counter() - t0)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return RunResult(

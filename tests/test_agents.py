@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from harness import validation
+from harness import exact_solutions
 from harness.agents import Swarm, interpolate
 from harness.densities import GaussianMixture
 from harness.fokker_planck import FokkerPlanck
@@ -90,7 +90,7 @@ def test_agents_match_fokker_planck_within_statistical_bound():
     """Histogram of N = 1e5 robots vs the Fokker-Planck solution, same fixed v.
 
     Bound: ||h - p|| <= sqrt(E + 5 sd) + b, with E and sd the mean and standard
-    deviation of ||h - p_bar||^2 for multinomial counts (validation.histogram_noise)
+    deviation of ||h - p_bar||^2 for multinomial counts (exact_solutions.histogram_noise)
     and b the discretisation error of p, estimated by Richardson: twice the
     distance to the solution on a grid twice as fine (second order in space),
     plus the distance to the solution with half the time step (first order).
@@ -108,7 +108,7 @@ def test_agents_match_fokker_planck_within_statistical_bound():
     for _ in range(round(t_final / dt)):
         swarm.step(v, dt, rng)
     h = swarm.histogram()
-    mean, sd = validation.histogram_noise(g, p, n_robots)
+    mean, sd = exact_solutions.histogram_noise(g, p, n_robots)
     distance = g.l2(h - p)
     assert distance <= np.sqrt(mean + 5 * sd) + b, (distance, np.sqrt(mean), b)
     # the bound is tight enough to matter: the initial density is far outside it

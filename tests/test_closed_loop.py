@@ -5,75 +5,55 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose, initialize_config_dir
 from mcap.reader import make_reader
 
 from analysis.load import load_run
-from harness.config import register_configs
 from harness.densities import DEFAULT_TARGET
 from harness.grid import Grid
-from harness.mcap_log import METRIC_KEYS
+from harness.metrics import METRIC_KEYS
 from harness.run import run
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "conf"
-SMOKE = [
-    "grid.n=12",
-    "agents.n=200",
-    "sim.t_final=0.2",
-    "sim.dt=0.02",
-    "log.field_every=3",
-    "log.positions_every=4",
-    "log.progress=off",
-]
 
 
-def compose_cfg(overrides):
-    register_configs()
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("closed_loop", overrides=overrides)
-
-
-def group_options(group):
-    return sorted(p.stem for p in (CONF / group).glob("*.yaml"))
-
-
-@pytest.mark.parametrize(
-    "group,option",
-    [
-        (g, o)
-        for g in ("plant", "estimator", "controller", "target", "init", "experiment")
-        for o in group_options(g)
-    ],
-)
-def test_every_config_option_composes(group, option):
+def test_every_config_option_composes_and_runs(tmp_path, compose, smoke, group_option):
+    group, option = group_option
     key = f"+{group}" if group == "experiment" else group
-    cfg = compose_cfg([f"{key}={option}"])
-    assert cfg.grid.n >= 4 and cfg.sim.dt > 0
+    cfg = compose([f"{key}={option}", *smoke, "sim.t_final=0.06"])
+    result = run(cfg, tmp_path)
+    assert result.state == "completed", result.reason
+    assert load_run(tmp_path).state == "completed"
 
 
-def test_default_config_is_the_papers():
-    cfg = compose_cfg([])
+def test_default_config_is_the_papers(compose):
+    cfg = compose([])
     assert (cfg.agents.n, cfg.grid.n, cfg.sim.dt) == (1024, 30, 0.01)
     assert cfg.dynamics.sigma == pytest.approx(5e-5) and cfg.control.alpha == pytest.approx(0.003)
     assert cfg.kde.bandwidth == pytest.approx(0.04)
-    assert (cfg.init.kind, cfg.init.x0, cfg.init.x1) == ("box", 0.15, 0.85)
-    assert cfg.plant.name == "agents" and cfg.estimator.name == "filters"
-    assert cfg.control.law == "paper" and cfg.sim.t_final >= 100
+    assert (cfg.init.x0, cfg.init.x1, cfg.init.y0, cfg.init.y1) == (0.15, 0.85, 0.15, 0.85)
+    assert cfg.init._target_ == "harness.densities.Box"
+    assert cfg.plant._target_ == "harness.plants.Agents"
+    assert cfg.estimator._target_ == "harness.estimators.FilterEstimator"
+    assert cfg.filter.method == "local"
+    assert cfg.control._target_ == "harness.control.PaperControl" and cfg.sim.t_final >= 100
 
 
-def test_bad_types_fail_at_composition():
-    with pytest.raises(Exception, match=r"agents\.n"):
-        compose_cfg(["agents.n=many"])
+def test_public_keys_reach_the_components(compose):
+    from harness.build import build
+
+    cfg = compose(["agents.n=77", "kde.bandwidth=0.05", "dynamics.sigma=1e-4", "grid.n=10"])
+    parts = build(cfg)
+    assert parts.plant.n == 77 and parts.plant.kde.bandwidth == 0.05
+    assert parts.control.sigma == 1e-4 and parts.model.sigma == 1e-4
+    measurement = parts.estimator.engine.measurement
+    assert (measurement.n_robots, measurement.bandwidth) == (77, 0.05)
 
 
 @pytest.mark.parametrize("plant", ["agents", "meanfield"])
 @pytest.mark.parametrize("estimator", ["filters", "kde", "exact", "injected"])
-@pytest.mark.parametrize("controller", ["paper", "heat"])
-def test_every_combination_runs(tmp_path, plant, estimator, controller):
-    cfg = compose_cfg(
-        [f"plant={plant}", f"estimator={estimator}", f"controller={controller}", *SMOKE]
-    )
+@pytest.mark.parametrize("control", ["paper", "heat"])
+def test_every_combination_runs(tmp_path, compose, smoke, plant, estimator, control):
+    cfg = compose([f"plant={plant}", f"estimator={estimator}", f"control={control}", *smoke])
     result = run(cfg, tmp_path)
     assert result.state == "completed", result.reason
     assert result.steps == 10
@@ -98,8 +78,8 @@ def topics_of(path):
     return out
 
 
-def test_mcap_contract_agents_filters(tmp_path):
-    cfg = compose_cfg(SMOKE)
+def test_mcap_contract_agents_filters(tmp_path, compose, smoke):
+    cfg = compose(smoke)
     run(cfg, tmp_path)
     topics = topics_of(tmp_path / "run.mcap")
     grid_topics = [
@@ -131,7 +111,9 @@ def test_mcap_contract_agents_filters(tmp_path):
         "version_numpy",
     ):
         assert key in prov
-    assert log.metadata["status"] == {"state": "completed", "reason": ""}
+    status = log.metadata["status"]
+    assert (status["state"], status["reason"]) == ("completed", "")
+    assert float(status["wall_s"]) > 0
     assert set(log.metrics) == set(METRIC_KEYS)
     np.testing.assert_allclose(log.metrics["t"], np.arange(11) * 0.02)
     assert np.all(log.metrics["trace_P"] > 0)
@@ -150,8 +132,8 @@ def test_mcap_contract_agents_filters(tmp_path):
     assert set(json.loads(msg.data)) == set(METRIC_KEYS)
 
 
-def test_topics_absent_where_not_applicable(tmp_path):
-    cfg = compose_cfg(["plant=meanfield", "estimator=exact", *SMOKE])
+def test_topics_absent_where_not_applicable(tmp_path, compose, smoke):
+    cfg = compose(["plant=meanfield", "estimator=exact", *smoke])
     run(cfg, tmp_path)
     topics = topics_of(tmp_path / "run.mcap")
     for absent in ("/swarm/positions", "/fields/p_kde", "/fields/grad_kde"):
@@ -160,8 +142,8 @@ def test_topics_absent_where_not_applicable(tmp_path):
     assert np.all(np.isnan(log.metrics["kde_l2"])) and np.all(np.isnan(log.metrics["trace_P"]))
 
 
-def test_meanfield_exact_run_converges_and_keeps_mass(tmp_path):
-    cfg = compose_cfg(
+def test_meanfield_exact_run_converges_and_keeps_mass(tmp_path, compose):
+    cfg = compose(
         [
             "plant=meanfield",
             "estimator=exact",
@@ -181,8 +163,8 @@ def test_meanfield_exact_run_converges_and_keeps_mass(tmp_path):
     assert np.all(np.diff(m["lyapunov"]) <= 1e-14)
 
 
-def test_figure_script_writes_its_files(tmp_path):
-    run(compose_cfg(SMOKE), tmp_path / "run")
+def test_figure_script_writes_its_files(tmp_path, compose, smoke):
+    run(compose(smoke), tmp_path / "run")
     out = subprocess.run(
         [
             sys.executable,
@@ -210,9 +192,9 @@ def test_figure_script_writes_its_files(tmp_path):
     assert bad.returncode == 2 and "no run log" in bad.stderr
 
 
-def test_hydra_entry_point(tmp_path):
+def test_hydra_entry_point(tmp_path, smoke):
     out = subprocess.run(
-        [sys.executable, "-m", "experiments.closed_loop", *SMOKE, f"hydra.run.dir={tmp_path}"],
+        [sys.executable, "-m", "experiments.closed_loop", *smoke, f"hydra.run.dir={tmp_path}"],
         capture_output=True,
         text=True,
         cwd=ROOT,
@@ -221,3 +203,28 @@ def test_hydra_entry_point(tmp_path):
     assert out.returncode == 0, out.stderr
     assert "completed after 10 steps" in out.stdout
     assert (tmp_path / "run.mcap").is_file()
+
+
+@pytest.mark.parametrize(
+    "flags,expect",
+    [
+        (["--cfg", "job"], "agents:"),
+        (["-c", "job"], "control:"),
+        (["--cfg", "hydra"], "launcher:"),
+        (["--info", "searchpath"], "Config search path"),
+        (["--help"], "Powered by Hydra"),
+        (["--config-name", "closed_loop", "--cfg", "job"], "estimator:"),
+        (["-cn", "closed_loop", "-c", "job"], "plant:"),
+    ],
+)
+def test_hydra_flags_work(tmp_path, flags, expect):
+    out = subprocess.run(
+        [sys.executable, "-m", "experiments.closed_loop", *flags, f"hydra.run.dir={tmp_path}/r"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr
+    assert expect in out.stdout
+    assert not (tmp_path / "r" / "run.mcap").exists()

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from harness.densities import DEFAULT_TARGET, Box, GaussianMixture, Target, Uniform, make_density
+from harness.components import ParameterError
+from harness.densities import DEFAULT_TARGET, Box, GaussianMixture, Target, Uniform
 from harness.grid import Grid
 
 
@@ -54,30 +55,26 @@ def test_samples_follow_the_density(density, rng):
 
 
 @pytest.mark.parametrize(
-    "spec,match",
+    "make,match",
     [
-        ({"kind": "blob"}, "unknown density kind"),
-        ({"kind": "box", "x0": 0.5, "x1": 0.4, "y0": 0, "y1": 1}, "box"),
-        ({"kind": "box", "x0": -0.1, "x1": 0.4, "y0": 0, "y1": 1}, "box"),
-        ({"kind": "gaussian_mixture", "means": [[0.5, 0.5]], "stds": [0], "weights": [1]}, "stds"),
-        (
-            {
-                "kind": "gaussian_mixture",
-                "means": [[0.5, 0.5]],
-                "stds": [0.1],
-                "weights": [1],
-                "floor": 0,
-            },
-            "floor",
-        ),
-        ({"kind": "gaussian_mixture", "means": [[0.5]], "stds": [0.1], "weights": [1]}, "pair"),
-        ({"kind": "gaussian_mixture", "means": [], "stds": [], "weights": []}, "means"),
+        (lambda: Box(0.5, 0.4, 0.0, 1.0), "x1"),
+        (lambda: GaussianMixture([[0.5, 0.5]], [0], [1]), "stds"),
+        (lambda: GaussianMixture([[0.5, 0.5]], [0.1], [1], floor=0), "floor"),
+        (lambda: GaussianMixture([[0.5, 0.5]], [0.1], [1], floor=1.5), "floor"),
+        (lambda: GaussianMixture([[0.5]], [0.1], [1]), "pairs"),
+        (lambda: GaussianMixture([], [], []), "means"),
+        (lambda: GaussianMixture([[0.5, 0.5]], [0.1, 0.2], [1]), "stds"),
+        (lambda: GaussianMixture([[0.5, 0.5]], [0.1], ["a"]), "weights"),
     ],
 )
-def test_bad_densities_give_clear_errors(spec, match):
-    g = Grid.square(10)
-    with pytest.raises(ValueError, match=match):
-        make_density(spec).on_grid(g)
+def test_bad_densities_give_clear_errors(make, match):
+    with pytest.raises(ParameterError, match=match):
+        make()
+
+
+def test_box_outside_the_domain_is_refused_on_the_grid():
+    with pytest.raises(ValueError, match="box"):
+        Box(-0.1, 0.4, 0.0, 1.0).on_grid(Grid.square(10))
 
 
 def test_target_must_be_positive():

@@ -3,7 +3,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from harness import validation
+from harness import exact_solutions
 from harness.control import paper_law
 from harness.densities import Box, Target, Uniform
 from harness.fokker_planck import FokkerPlanck, NumericalError, bernoulli, rate
@@ -147,7 +147,7 @@ def test_lyapunov_never_increases_in_closed_loop(n, alpha, dt, steps):
     p = Box().on_grid(grid)
     # The paper's own setting (first case) sits just above the worst-case bound
     # (0.0093 s), which takes the largest ratio p/p_* at one cell; it stays monotone.
-    bound = sampled_data_dt_bound(grid, alpha, float(np.max(p / target.p)))
+    bound = sampled_data_dt_bound(grid, alpha * float(np.max(p / target.p)))
     assert dt <= 1.1 * bound
     values = [lyapunov(grid, p, target)]
     for _ in range(steps):
@@ -175,8 +175,8 @@ def test_cosine_mode_decays_at_discrete_eigenvalue(kx, ky):
     g = Grid(24, 20, 0.0, 1.0, 0.0, 0.8)
     sigma, dt = 2e-3, 0.02
     op = FokkerPlanck(g, sigma)
-    mode = validation.cosine_mode(g, kx, ky)
-    lam = validation.discrete_decay_rate(g, kx, ky, sigma)
+    mode = exact_solutions.cosine_mode(g, kx, ky)
+    lam = exact_solutions.discrete_decay_rate(g, kx, ky, sigma)
     np.testing.assert_allclose(op.rate(mode, VelocityField.zeros(g)), -lam * mode, atol=1e-12 * lam)
     p = 1.0 + 0.5 * mode
     for n in range(1, 21):
@@ -190,7 +190,7 @@ def test_discrete_eigenvalue_converges_to_sigma_pi_squared_at_second_order():
     errors = []
     for n in (8, 16, 32, 64):
         g = Grid.square(n)
-        mode = validation.cosine_mode(g, 1, 0)
+        mode = exact_solutions.cosine_mode(g, 1, 0)
         # measured from the operator itself, not the closed form
         lam = -g.inner(FokkerPlanck(g, sigma).rate(mode, VelocityField.zeros(g)), mode) / g.inner(
             mode, mode

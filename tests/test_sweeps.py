@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from analysis.load import load_run
-from analysis.sweep import analyse
+from analysis.sweep import analyse, value
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["grid.n=10", "agents.n=100", "sim.t_final=0.1", "sim.dt=0.02", "log.progress=off"]
@@ -127,7 +127,7 @@ def test_iss_curve_is_monotone_and_zero_error_rate_meets_poincare_bound(tmp_path
         "log.progress=off",
     )
     rows, _ = analyse(tmp_path)
-    rows.sort(key=lambda r: float(r["estimator.delta"]))
+    rows.sort(key=lambda r: float(value(r, "estimator.delta")))
     assert [r["state"] for r in rows] == ["completed"] * 4
     sups = np.array([r["phi_tail_sup"] for r in rows])
     assert np.all(np.diff(sups) > 0), sups
@@ -168,3 +168,14 @@ def test_joblib_job_is_byte_identical_to_a_serial_run(tmp_path):
     (job,) = [d for d in job_dirs(tmp_path / "sweep") if "seed=5" in d.name]
     a, b = payloads(serial / "run.mcap"), payloads(job / "run.mcap")
     assert len(a) > 10 and a == b
+
+
+def test_analysis_groups_by_the_logged_config_not_the_command_line(tmp_path):
+    """A law chosen by group (control=heat) in one sweep and by default in another are
+    told apart by the logged config; the CSV has the varied keys as columns."""
+    multirun(tmp_path, "control=paper,heat", *TINY, "plant=meanfield", "estimator=exact")
+    rows, _ = analyse(tmp_path)
+    assert sorted(r["law"] for r in rows) == ["HeatControl", "PaperControl"]
+    from analysis.sweep import varied
+
+    assert "control._target_" in varied(rows) and "seed" not in varied(rows)

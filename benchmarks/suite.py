@@ -103,27 +103,24 @@ def bench_fokker_planck() -> bool:
     return ok
 
 
-def closed_loop_rate(n: int, method: str, steps: int) -> float:
-    """Closed-loop steps per second: agents, KDE, both filters, paper's law, truth."""
-    from harness.estimators import FilterEstimator
-    from harness.filters.common import FilterSettings
-    from harness.loop import ClosedLoop, ControlLaw
+def compose_config(overrides: list[str]):
+    """The app's config with ``overrides``."""
+    from hydra import compose, initialize_config_dir
 
-    g = Grid.square(n)
-    rng = np.random.default_rng(0)
-    target = Target.from_density(g, DEFAULT_TARGET)
-    est = FilterEstimator(g, 5e-5, 0.01, 1024, 0.04, FilterSettings(), method=method)
+    conf = str(Path_(__file__).resolve().parents[1] / "conf")
+    with initialize_config_dir(config_dir=conf, version_base="1.3"):
+        return compose("closed_loop", overrides=overrides)
+
+
+def closed_loop_rate(n: int, method: str, steps: int) -> float:
+    """Closed-loop steps per second: agents, KDE, both filters, paper's law, reference."""
+    from harness.build import build
+    from harness.loop import ClosedLoop
+
+    cfg = compose_config([f"grid.n={n}", f"filter.method={method}"])
+    parts = build(cfg)
     loop = ClosedLoop(
-        g,
-        target,
-        Box().on_grid(g),
-        est,
-        ControlLaw("paper", target, 0.003, 5e-5),
-        5e-5,
-        0.01,
-        rng,
-        Swarm(g, Box().sample(1024, g, rng), 5e-5),
-        KDE(g, 0.04),
+        parts.plant, parts.estimator, parts.control, parts.model, 0.01, np.random.default_rng(0)
     )
     loop.start()
     loop.step()
@@ -195,15 +192,9 @@ def bench_sweeps() -> bool:
     verdict = "OK" if met else "MISSED"
     print(f"  {'ratio two jobs / one job':<52s} {ratio:9.2f}      target <= 1.15    {verdict}")
     # logging share of a run's wall time, default rates
-    from hydra import compose, initialize_config_dir
-
-    from harness.config import register_configs
     from harness.run import run
 
-    register_configs()
-    conf = str(Path_(__file__).resolve().parents[1] / "conf")
-    with initialize_config_dir(config_dir=conf, version_base="1.3"):
-        cfg = compose("closed_loop", overrides=["sim.t_final=20", "log.progress=off"])
+    cfg = compose_config(["sim.t_final=20", "log.progress=off"])
     with tempfile.TemporaryDirectory() as tmp:
         result = run(cfg, Path_(tmp))
     share = result.log_s / result.wall_s

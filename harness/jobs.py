@@ -1,4 +1,5 @@
-"""Sweeps: per-job status, resume, and the status table at the end of a multirun.
+"""Jobs of a sweep: per-job status, resume, and the status table at the end of a
+multirun; and the check of a single run's config before Hydra writes anything.
 
 Hydra cannot resume a sweep. Each job of a multirun therefore
 
@@ -27,6 +28,10 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from mcap.reader import make_reader
 from omegaconf import DictConfig
+
+from harness.build import build
+from harness.checks import ConfigError
+from harness.run import RunResult, Terminated, run
 
 STATUS_FILE = "job_status.json"
 
@@ -129,3 +134,52 @@ class SweepStatusCallback(Callback):
                 file=sys.stderr,
             )
             sys.exit(1)
+
+
+class CheckCallback(Callback):
+    """Checks a single run's config (by building its components) before Hydra creates
+    the output directory; a refused value prints its one line and exits with status 2.
+    """
+
+    def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Build the components once to check them; nothing is written."""
+        try:
+            build(config)
+        except ConfigError as err:
+            print(err, file=sys.stderr)
+            sys.exit(2)
+
+
+def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunResult | None:
+    """One job of a multirun: skip when complete, never raise on failure, keep status.
+
+    Returns the run's result, or None when the job was skipped, invalid or failed (its
+    ``job_status.json`` says which).
+
+    Raises:
+        KeyboardInterrupt, Terminated: after recording ``aborted``, so the sweep stops.
+    """
+    ident = {"job": job, "overrides": overrides}
+    if log_state(out / "run.mcap") == "completed":
+        write_status(out, state="completed", **ident)
+        print(f"job {job}: already completed, skipped ({out})")
+        return None
+    try:
+        build(cfg)
+    except ConfigError as err:
+        print(err, file=sys.stderr)
+        write_status(out, state="invalid", reason=str(err), **ident)
+        return None
+    runs = read_status(out).get("runs", 0) + 1
+    write_status(out, state="running", runs=runs, reason="", **ident)
+    try:
+        result = run(cfg, out)
+    except (KeyboardInterrupt, Terminated):
+        write_status(out, state="aborted", reason="interrupted")
+        raise
+    except Exception as err:  # recorded, not raised: the other jobs go on
+        write_status(out, state="aborted", reason=f"{type(err).__name__}: {err}")
+        print(f"job {job} failed: {type(err).__name__}: {err}", file=sys.stderr)
+        return None
+    write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
+    return result

@@ -1,0 +1,169 @@
+"""The component protocols of the closed loop, and how a component refuses a parameter.
+
+    plant --Measurement--> estimator --Estimate (p_hat, q_hat)--> control --v--> plant
+
+Each option of each config group (``plant``, ``estimator``, ``control``, ``target``,
+``init``) is a class implementing one of these protocols plus a YAML file with
+``_target_`` and the class's own parameters; :func:`harness.run.build` instantiates them
+with ``hydra.utils.instantiate`` and hands each the run-time objects listed below as
+keyword arguments. A constructor checks its own parameters and raises
+:class:`ParameterError` naming the parameter; the builder turns that into a one-line
+config error naming the full key (following interpolations such as ``${agents.n}`` to
+the public key).
+
+Run-time keyword arguments, by group:
+
+* density (``target``, ``init``): none;
+* ``plant``: ``grid`` (:class:`~harness.grid.Grid`), ``model``
+  (:class:`~harness.fokker_planck.FokkerPlanck`), ``init`` (a :class:`Density`);
+* ``estimator``: ``grid``, ``model``;
+* ``control``: ``target`` (:class:`~harness.densities.Target`).
+
+See ``docs/extending.md`` for a complete example of each.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import scipy.sparse as sp
+
+from harness.grid import Grid
+from harness.records import Estimate, Measurement, StepInput
+from harness.velocity import VelocityField
+
+
+class ParameterError(ValueError):
+    """A component parameter that is not allowed.
+
+    Attributes:
+        name: The parameter's name in the component's YAML (the builder prefixes the
+            group, or follows an interpolation to the public key).
+        value: The value given.
+        allowed: What is allowed, as a phrase (``"an integer >= 1"``).
+    """
+
+    def __init__(self, name: str, value: Any, allowed: str) -> None:
+        self.name, self.value, self.allowed = name, value, allowed
+        super().__init__(f"{name}={value!r}: {allowed}")
+
+
+def _is_number(x: Any) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
+
+
+def require(ok: bool, name: str, value: Any, allowed: str) -> None:
+    """Raise :class:`ParameterError` unless ``ok``."""
+    if not ok:
+        raise ParameterError(name, value, allowed)
+
+
+def number(name: str, value: Any, low: float | None = None, strict: bool = False) -> float:
+    """A finite number, ``>= low`` (``> low`` when ``strict``); returns it as float."""
+    if low is None:
+        allowed = "a finite number"
+    else:
+        allowed = f"a finite number {'>' if strict else '>='} {low:g}"
+    ok = _is_number(value) and math.isfinite(float(value))
+    if ok and low is not None:
+        ok = float(value) > low if strict else float(value) >= low
+    require(ok, name, value, allowed)
+    return float(value)
+
+
+def integer(name: str, value: Any, low: int) -> int:
+    """An integer ``>= low``; returns it."""
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low
+    require(ok, name, value, f"an integer >= {low}")
+    return int(value)
+
+
+def flag(name: str, value: Any) -> bool:
+    """A boolean."""
+    require(isinstance(value, bool), name, value, "true or false")
+    return value
+
+
+@runtime_checkable
+class Density(Protocol):
+    """A target ``p_*`` or initial density ``p_0`` (1 / length^2)."""
+
+    def on_grid(self, grid: Grid) -> np.ndarray:
+        """Cell values, shape ``(ny, nx)``, with grid integral 1."""
+        ...
+
+    def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
+        """``n`` positions drawn from the density on the grid's domain, shape ``(2, n)``
+        (row 0: x, row 1: y).
+        """
+        ...
+
+
+@runtime_checkable
+class Plant(Protocol):
+    """What moves under the held velocity, and what it lets the estimator measure.
+
+    Attributes:
+        density: The mean-field density ``(ny, nx)`` (1 / length^2) the plant carries: its
+            state (``meanfield``) or the Fokker-Planck reference under the applied
+            velocity (``agents``).
+        positions: Robot positions ``(2, N)`` (length), or None without robots.
+    """
+
+    density: np.ndarray
+    positions: np.ndarray | None
+
+    def start(self, rng: np.random.Generator) -> None:
+        """Place the initial state (robots are drawn from ``init`` with ``rng``)."""
+        ...
+
+    def advance(
+        self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
+    ) -> None:
+        """Move over one step of ``dt`` (s) under the held velocity ``v``; ``a`` is
+        ``A(v)``, the Fokker-Planck matrix of ``v``.
+        """
+        ...
+
+    def measure(self, rng: np.random.Generator) -> Measurement:
+        """The measurement at the current time."""
+        ...
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """Measurements in, ``(p_hat, q_hat)`` out.
+
+    Attributes:
+        uses_kde: Whether it reads the plant's measurement (the loop measures only then).
+    """
+
+    uses_kde: bool
+
+    def initialize(self, inp: StepInput) -> Estimate:
+        """First estimate, at ``t = 0``."""
+        ...
+
+    def step(self, inp: StepInput) -> Estimate:
+        """Estimate at a later step."""
+        ...
+
+
+@runtime_checkable
+class Control(Protocol):
+    """A feedback law: estimates in, velocity field out."""
+
+    def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
+        """The velocity field (length / s) for ``p_hat`` (1 / length^2) and ``q_hat``
+        (1 / length^3).
+        """
+        ...
+
+    def feedback_diffusivity(self, p0: np.ndarray) -> float | None:
+        """Largest diffusivity (length^2 / s) the held feedback acts with, for a start
+        ``p0``; None when the law has no such bound (the step bound is then not checked,
+        and the run says so).
+        """
+        ...

@@ -1,0 +1,131 @@
+"""Plants (config group ``plant``): what moves under the held velocity and what it
+lets the estimator measure.
+
+* :class:`Agents` (``plant=agents``): ``N`` robots by eq. ``Langevin equation``
+  (:class:`harness.agents.Swarm`), measured by their KDE (:class:`harness.kde.KDE`);
+  alongside, the mean-field reference ``p``: the Fokker-Planck density (eq. ``FP
+  equation``) under the same applied velocity, started from ``p_0``.
+* :class:`MeanField` (``plant=meanfield``): no robots; the state is the Fokker-Planck
+  density ``p`` and the measurement is ``p`` plus seeded Gaussian noise with the KDE's
+  own variances ``k p`` and ``k_g p`` per cell (notes section 3), for the swarm size and
+  bandwidth configured.
+
+Both implement :class:`harness.components.Plant` and share the run's
+:class:`~harness.fokker_planck.FokkerPlanck` model, so ``A(v)`` is assembled once per
+step for the plant and the filters.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from harness.agents import Swarm
+from harness.components import Density, flag, integer, number, require
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.kde import KDE, noise_constants
+from harness.records import Measurement
+from harness.velocity import VelocityField
+
+
+class _MeanFieldDensity:
+    """The Fokker-Planck density both plants carry, started from ``p_0`` on the grid."""
+
+    def __init__(self, grid: Grid, model: FokkerPlanck, init: Density) -> None:
+        self.grid, self.model, self.init = grid, model, init
+        self.density = init.on_grid(grid)
+
+    def _advance_density(self, v: VelocityField, a: sp.csr_matrix, dt: float) -> None:
+        self.density = self.model.step(self.density, v, dt, a)
+
+
+class Agents(_MeanFieldDensity):
+    """``N`` robots measured by their KDE, with the mean-field reference alongside.
+
+    Args:
+        grid, model, init: Run-time arguments (grid, Fokker-Planck model, ``p_0``).
+        n: Number of robots ``N >= 1``.
+        bandwidth: KDE bandwidth ``h > 0`` (length), at most the domain side.
+        mirror: Wall images in the KDE.
+        method: KDE evaluation, ``auto`` | ``exact`` | ``binned``.
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        init: Density,
+        n: int,
+        bandwidth: float,
+        mirror: bool = True,
+        method: str = "auto",
+    ) -> None:
+        super().__init__(grid, model, init)
+        self.n = integer("n", n, 1)
+        h = number("bandwidth", bandwidth, 0.0, strict=True)
+        side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
+        require(h <= side, "bandwidth", bandwidth, f"at most the domain side {side:g}")
+        require(method in KDE.METHODS, "method", method, f"one of {', '.join(KDE.METHODS)}")
+        self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method)
+        self.swarm: Swarm | None = None
+
+    @property
+    def positions(self) -> np.ndarray | None:
+        """Robot positions ``(2, N)`` (length), None before :meth:`start`."""
+        return None if self.swarm is None else self.swarm.positions
+
+    def start(self, rng: np.random.Generator) -> None:
+        """Draw ``N`` robots from ``p_0``."""
+        self.swarm = Swarm(self.grid, self.init.sample(self.n, self.grid, rng), self.model.sigma)
+
+    def advance(
+        self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
+    ) -> None:
+        """Robots by Euler-Maruyama with reflection, then the mean-field reference."""
+        assert self.swarm is not None, "call start first"
+        self.swarm.step(v, dt, rng)
+        self._advance_density(v, a, dt)
+
+    def measure(self, rng: np.random.Generator) -> Measurement:
+        """The KDE of the robots and its analytic gradient."""
+        assert self.swarm is not None, "call start first"
+        return Measurement(*self.kde(self.swarm.positions))
+
+
+class MeanField(_MeanFieldDensity):
+    """The mean-field density, measured with KDE-like noise (no robots).
+
+    Args:
+        grid, model, init: Run-time arguments.
+        robots: Swarm size ``N >= 1`` whose KDE noise is imitated.
+        bandwidth: KDE bandwidth ``h > 0`` (length) whose noise is imitated.
+    """
+
+    positions = None
+
+    def __init__(
+        self, grid: Grid, model: FokkerPlanck, init: Density, robots: int, bandwidth: float
+    ) -> None:
+        super().__init__(grid, model, init)
+        self.robots = integer("robots", robots, 1)
+        self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
+        self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
+
+    def start(self, rng: np.random.Generator) -> None:
+        """Nothing to draw: the state is ``p_0`` on the grid."""
+
+    def advance(
+        self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
+    ) -> None:
+        """The backward-Euler Fokker-Planck step."""
+        self._advance_density(v, a, dt)
+
+    def measure(self, rng: np.random.Generator) -> Measurement:
+        """``p + sqrt(k p) xi`` and ``G p + sqrt(k_g p) xi_g``, ``xi`` standard normal."""
+        p = self.density
+        sd = np.sqrt(np.maximum(p, 0.0))
+        p_meas = p + np.sqrt(self.k) * sd * rng.standard_normal(self.grid.shape)
+        grad = self.grid.gradient(p)
+        grad_meas = grad + np.sqrt(self.k_g) * sd * rng.standard_normal((2, *self.grid.shape))
+        return Measurement(p_meas, grad_meas)
