@@ -20,15 +20,19 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP) ## Create .venv and install the project with its dev tools
 
-test: $(STAMP) ## Run the test suite (excludes tests marked slow)
+test: $(STAMP) ## Static checks (ruff, mypy) and the test suite (excludes tests marked slow)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+	$(PY) -m mypy
 	$(PY) -m pytest
 
 test-slow: $(STAMP) ## Run only the slow tests
 	$(PY) -m pytest -m slow
 
-lint: $(STAMP) ## Check style with ruff
+lint: $(STAMP) ## Static checks only: ruff (lint, format) and mypy
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
+	$(PY) -m mypy
 
 format: $(STAMP) ## Format the code with ruff
 	$(PY) -m ruff format .

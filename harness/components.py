@@ -75,7 +75,7 @@ def number(name: str, value: Any, low: float | None = None, strict: bool = False
 
 def integer(name: str, value: Any, low: int) -> int:
     """An integer ``>= low``; returns it."""
-    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= low
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool) and bool(value >= low)
     require(ok, name, value, f"an integer >= {low}")
     return int(value)
 

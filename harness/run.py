@@ -4,8 +4,8 @@
 advances the plant, the estimator and the control; the observers (metrics, the
 divergence guard and the MCAP logger) see each step and never steer. Whatever happens,
 the log is finalised with a ``status`` record: ``completed``; ``diverged`` (non-finite
-values, negative density or lost mass, with the reason); or ``aborted`` (an exception, Ctrl-C or SIGTERM, re-raised after
-the log is closed).
+values, negative density or lost mass, with the reason); or ``aborted`` (an exception,
+Ctrl-C or SIGTERM, re-raised after the log is closed).
 """
 
 from __future__ import annotations

@@ -53,16 +53,6 @@ class VelocityField:
         """The zero field."""
         return cls.from_centres(np.zeros((2, *grid.shape)))
 
-    def max_speed(self) -> float:
-        """Largest speed over centres and faces (length / time)."""
-        return float(
-            max(
-                np.max(np.hypot(self.centres[0], self.centres[1])),
-                np.max(np.abs(self.face_x), initial=0.0),
-                np.max(np.abs(self.face_y), initial=0.0),
-            )
-        )
-
     def is_finite(self) -> bool:
         """True when every stored value is finite."""
         return bool(

@@ -75,7 +75,7 @@ def test_bad_configs_are_rejected_with_the_key_named(compose, data):
 
 def test_injected_error_size_is_checked_by_its_component(compose):
     message = config_error(compose, ["estimator=injected", "estimator.delta=-1"])
-    assert message == "invalid config: estimator.delta=-1.0: a finite number >= 0"
+    assert message == "invalid config: estimator.delta=-1: a finite number >= 0"
 
 
 def test_interpolated_parameters_are_named_by_their_public_key(compose):
