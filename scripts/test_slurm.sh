@@ -23,12 +23,12 @@ WAIT_S=${WAIT_S:-600}
 say() { echo "test-slurm: $*"; }
 die() { echo "test-slurm: FAILED: $*" >&2; exit 1; }
 
-[[ -x $PY ]] || die "no Python at $PY (run make install, or set PY=...)"
 if [[ $(id -u) -ne 0 ]]; then
     echo "test-slurm: needs root: it installs slurm-wlm and munge with apt-get and starts" \
         "munged, slurmctld and slurmd (run it as root, e.g. in a disposable VM or container)" >&2
     exit 1
 fi
+[[ -x $PY ]] || die "no Python at $PY (run make install, or set PY=...)"
 
 missing=()
 for cmd in munged slurmctld slurmd sbatch squeue scontrol; do
