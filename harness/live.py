@@ -99,6 +99,11 @@ class LiveServer:
             topic, schema=schema, message_encoding=message_encoding, context=self._context
         )
 
+    def subscribed(self, topic: str) -> bool:
+        """Whether a client currently subscribes to ``topic``."""
+        ch = self._channels.get(topic)
+        return ch is not None and not self._closed and ch.has_sinks()
+
     def publish(self, topic: str, log_time_ns: int, data: bytes) -> None:
         """Send one message to the clients subscribed to ``topic``; never blocks.
 
