@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-slow lint format bench reproduce sweeps clean
+.PHONY: help install test test-slow test-slurm lint format bench reproduce sweeps clean
 
 help: ## List the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-12s %s\n", $$1, $$2}'
@@ -28,6 +28,9 @@ test: $(STAMP) ## Static checks (ruff, mypy) and the test suite (excludes tests 
 
 test-slow: $(STAMP) ## Run only the slow tests
 	$(PY) -m pytest -m slow
+
+test-slurm: $(STAMP) ## Two-job SLURM sweep on a private one-node cluster (root; installs slurm-wlm, munge)
+	PY=$(abspath $(PY)) scripts/test_slurm.sh
 
 lint: $(STAMP) ## Static checks only: ruff (lint, format) and mypy
 	$(PY) -m ruff check .

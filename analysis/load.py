@@ -4,6 +4,18 @@
 each field topic as a :class:`FieldSeries` (times and values), the robot positions,
 and the metadata records (``config``, ``provenance``, ``status``). Topic names and
 units are those of the log contract in ``harness/mcap_log.py``.
+
+The same run as xarray objects (built from the numpy arrays, so the values are the
+same numbers): :meth:`RunLog.field_xarray` (one field topic, dims ``t``, ``y``, ``x``
+and ``component`` for two-component fields), :meth:`RunLog.metrics_xarray` (dim ``t``),
+:meth:`RunLog.to_xarray` (everything in one Dataset) and :meth:`RunLog.to_netcdf`;
+:func:`open_netcdf` reads such a file back. xarray is imported only when used::
+
+    log = load_run("outputs/reproduce")
+    p_hat = log.field_xarray("/fields/p_hat")          # (t, y, x), 1/length^2
+    p_hat.sel(t=10.0, method="nearest").plot()
+    log.metrics_xarray().phat_target_l2.plot()
+    log.to_netcdf("run.nc")
 """
 
 from __future__ import annotations
@@ -12,12 +24,50 @@ import json
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import InvalidMagic, StreamReader
+
+if TYPE_CHECKING:
+    import xarray as xr
+
+# units of the field topics (log contract, harness/mcap_log.py) and of the metrics (README)
+FIELD_UNITS = {
+    "/fields/p_target": "1/length^2",
+    "/fields/p_true": "1/length^2",
+    "/fields/p_kde": "1/length^2",
+    "/fields/p_hat": "1/length^2",
+    "/fields/grad_kde": "1/length^3",
+    "/fields/grad_hat": "1/length^3",
+    "/fields/velocity": "length/s",
+}
+FIELD_DESCRIPTIONS = {
+    "/fields/p_target": "target density p_*",
+    "/fields/p_true": "true density p (the Fokker-Planck solution)",
+    "/fields/p_kde": "kernel density estimate of the swarm",
+    "/fields/p_hat": "density filter estimate p_hat",
+    "/fields/grad_kde": "gradient of the kernel density estimate",
+    "/fields/grad_hat": "gradient filter estimate q_hat",
+    "/fields/velocity": "velocity field at the cell centres",
+}
+METRIC_UNITS = {
+    "t": "s",
+    "phi_l2": "1/length",
+    "phat_target_l2": "1/length",
+    "eps_l2": "1/length",
+    "eps_g_l2": "1/length^2",
+    "kde_l2": "1/length",
+    "lyapunov": "1/length^2",
+    "mass": "1",
+    "trace_P": "1/length^2",
+    "trace_Q": "1/length^2",
+    "trace_P_grad": "1/length^4",
+    "trace_Q_grad": "1/length^4",
+}
 
 
 class LogError(RuntimeError):
@@ -74,6 +124,62 @@ class RunLog:
         """``completed`` | ``aborted`` | ``diverged`` (``truncated`` without a status)."""
         return self.metadata.get("status", {}).get("state", "truncated")
 
+    def field_xarray(self, topic: str) -> xr.DataArray:
+        """Field ``topic`` as a DataArray (see :func:`field_dataarray`).
+
+        Raises:
+            KeyError: if the run has no messages on ``topic``.
+        """
+        return field_dataarray(self.fields[topic], topic)
+
+    def metrics_xarray(self) -> xr.Dataset:
+        """The metrics as a Dataset (see :func:`metrics_dataset`)."""
+        return metrics_dataset(self.metrics)
+
+    def to_xarray(self) -> xr.Dataset:
+        """The whole run (metrics, every field topic, metadata) as one Dataset.
+
+        The metrics keep dim ``t``; field topic ``/fields/NAME`` becomes variable
+        ``NAME`` with its own time dim ``t_NAME`` (topics are logged at different
+        times: ``p_target`` once) and, for two-component fields, dim
+        ``component_NAME``; all fields share ``y`` and ``x``. The metadata records
+        become string attributes ``RECORD.KEY`` (``config.yaml``,
+        ``provenance.git_commit``, ``status.state``, ...).
+        """
+        import xarray as xr
+
+        parts: list[xr.Dataset | xr.DataArray] = [self.metrics_xarray()]
+        for topic in self.fields:
+            name = topic.removeprefix("/fields/")
+            da = self.field_xarray(topic).rename({"t": f"t_{name}"})
+            if "component" in da.dims:
+                da = da.rename({"component": f"component_{name}"})
+            parts.append(da.rename(name))
+        ds = xr.merge(parts, join="outer", compat="no_conflicts", combine_attrs="override")
+        ds.attrs = {
+            f"{record}.{key}": value
+            for record, values in sorted(self.metadata.items())
+            for key, value in sorted(values.items())
+        }
+        ds.attrs["source"] = str(self.path)
+        if self.recovery is not None:
+            ds.attrs["recovery"] = self.recovery
+        return ds
+
+    def to_netcdf(self, path: str | Path) -> Path:
+        """Write :meth:`to_xarray` to a NetCDF file (netCDF3 through scipy: no extra
+        dependency). Field values are stored as float32, the precision of the log, so
+        reading the file back gives exactly the values of :func:`load_run`.
+
+        Returns:
+            The path written.
+        """
+        path = Path(path)
+        ds = self.to_xarray()
+        encoding = {topic.removeprefix("/fields/"): {"dtype": "float32"} for topic in self.fields}
+        ds.to_netcdf(path, engine="scipy", format="NETCDF3_64BIT", encoding=encoding)
+        return path
+
 
 def _decode_grid(
     msg,
@@ -90,6 +196,70 @@ def _decode_grid(
         (msg.pose.position.x, msg.pose.position.y),
         (msg.cell_size.x, msg.cell_size.y),
     )
+
+
+def field_dataarray(series: FieldSeries, topic: str = "") -> xr.DataArray:
+    """A field topic as an ``xarray.DataArray``.
+
+    Dims ``(t, y, x)`` for one-component fields (densities) and
+    ``(t, component, y, x)`` for two-component ones (``gx, gy``; ``vx, vy``), values as
+    in ``series.values``. Coordinates: ``t`` (s), ``y`` and ``x`` the cell centres
+    (length, :meth:`FieldSeries.centres`), ``component`` the field names. Attributes:
+    ``units``, ``topic``, ``long_name``, ``field_names``, ``cell_size`` and
+    ``origin`` (length).
+    """
+    import xarray as xr
+
+    x, y = series.centres()
+    coords: dict[str, tuple[str, object, dict[str, str]]] = {
+        "t": ("t", series.t, {"units": "s", "long_name": "simulated time"}),
+        "y": ("y", y, {"units": "length", "long_name": "cell centre y"}),
+        "x": ("x", x, {"units": "length", "long_name": "cell centre x"}),
+    }
+    if len(series.names) == 1:
+        dims: tuple[str, ...] = ("t", "y", "x")
+        values = series.values[:, 0]
+    else:
+        dims = ("t", "component", "y", "x")
+        values = series.values
+        coords["component"] = ("component", list(series.names), {})
+    attrs: dict[str, object] = {
+        "units": FIELD_UNITS.get(topic, ""),
+        "topic": topic,
+        "long_name": FIELD_DESCRIPTIONS.get(topic, topic),
+        "field_names": " ".join(series.names),
+        "cell_size": np.array(series.cell_size, dtype=float),
+        "origin": np.array(series.origin, dtype=float),
+    }
+    name = topic.removeprefix("/fields/") or None
+    return xr.DataArray(values, coords=coords, dims=dims, name=name, attrs=attrs)
+
+
+def metrics_dataset(metrics: dict[str, np.ndarray]) -> xr.Dataset:
+    """The ``/metrics`` arrays as an ``xarray.Dataset`` on dim ``t`` (s).
+
+    One variable per key other than ``t``, ``NaN`` where the log has ``null``, with
+    its ``units`` attribute (README, "Numbers the code prints").
+    """
+    import xarray as xr
+
+    t = metrics.get("t", np.array([]))
+    data_vars = {
+        key: ("t", values, {"units": METRIC_UNITS.get(key, "")})
+        for key, values in metrics.items()
+        if key != "t"
+    }
+    return xr.Dataset(
+        data_vars, coords={"t": ("t", t, {"units": "s", "long_name": "simulated time"})}
+    )
+
+
+def open_netcdf(path: str | Path) -> xr.Dataset:
+    """Read a file written by :meth:`RunLog.to_netcdf` (loaded into memory)."""
+    import xarray as xr
+
+    with xr.open_dataset(path, engine="scipy") as ds:
+        return ds.load()
 
 
 class LogWarning(UserWarning):

@@ -24,7 +24,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
-from harness.checks import describe
+from harness.checks import ConfigError, describe
 from harness.jobs import run_job
 from harness.run import run
 
@@ -39,7 +39,11 @@ def main(cfg: DictConfig) -> None:
         if result is None:
             return
     else:
-        result = run(cfg, out)
+        try:
+            result = run(cfg, out)
+        except ConfigError as err:  # found only when the run starts (a live port in use)
+            print(err, file=sys.stderr)
+            sys.exit(2)
     m = result.last_metrics
     print(
         f"{result.state} after {result.steps} steps in {result.wall_s:.1f} s wall: "

@@ -85,6 +85,12 @@ def check_shared(cfg: DictConfig) -> None:
         raise ConfigError("kde.method", kde.get("method"), f"one of {', '.join(KDE.METHODS)}")
     _shared("log.field_every", integer, log.get("field_every"), 1)
     _shared("log.positions_every", integer, log.get("positions_every"), 1)
+    _shared("log.live", flag, log.get("live"))
+    port = _shared("log.live_port", integer, log.get("live_port"), 0)
+    if port > 65535:
+        raise ConfigError("log.live_port", port, "a TCP port, 0 to 65535 (0: any free port)")
+    if not isinstance(log.get("live_host"), str) or not log.get("live_host"):
+        raise ConfigError("log.live_host", log.get("live_host"), "an address such as 127.0.0.1")
     if log.get("progress") not in PROGRESS:
         raise ConfigError("log.progress", log.get("progress"), f"one of {', '.join(PROGRESS)}")
     if dt > t_final:

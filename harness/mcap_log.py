@@ -36,7 +36,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
@@ -49,6 +49,9 @@ from mcap_protobuf.schema import register_schema
 from harness.grid import Grid
 from harness.metrics import ALWAYS_NUMBERS, METRIC_KEYS
 from harness.records import StepRecord
+
+if TYPE_CHECKING:
+    from harness.live import LiveServer
 
 METRICS_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -132,6 +135,8 @@ class McapLogger:
         field_every: Steps between field messages (``>= 1``).
         positions_every: Steps between position messages (``>= 1``).
         total_steps: Number of steps of the run (the last one always logs fields).
+        live: Also publish every message to this live server (``harness.live``): same
+            topics, schemas and bytes; the file is written exactly as without it.
     """
 
     def __init__(
@@ -143,17 +148,22 @@ class McapLogger:
         field_every: int,
         positions_every: int,
         total_steps: int,
+        live: LiveServer | None = None,
     ) -> None:
         self.path, self.grid = Path(path), grid
+        self.live = live
+        self._schema_defs: dict[int, tuple[str, str, bytes]] = {}
         self.field_every, self.positions_every = field_every, positions_every
         self.total_steps = total_steps
         self._file = open(self.path, "wb")
         self._writer = McapWriter(self._file, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library="densityloop")
         self._channels: dict[str, int] = {}
-        self._grid_schema = register_schema(self._writer, GridMsg)
-        self._points_schema = register_schema(self._writer, PointCloud)
-        self._metrics_schema = self._writer.register_schema(
+        # register_schema(self, ...) calls self.register_schema, which keeps each schema
+        as_writer = cast(McapWriter, self)
+        self._grid_schema = register_schema(as_writer, GridMsg)
+        self._points_schema = register_schema(as_writer, PointCloud)
+        self._metrics_schema = self.register_schema(
             name="densityloop.Metrics",
             encoding="jsonschema",
             data=json.dumps(METRICS_SCHEMA).encode(),
@@ -162,6 +172,12 @@ class McapLogger:
         self._writer.add_metadata("provenance", provenance)
         self._finished = False
         self.seconds = 0.0  # wall time spent logging steps (s)
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        """Register a schema in the file (and keep it for the live view); its id."""
+        schema_id = self._writer.register_schema(name=name, encoding=encoding, data=data)
+        self._schema_defs[schema_id] = (name, encoding, data)
+        return schema_id
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
         """An extra metadata record (string values)."""
@@ -172,6 +188,8 @@ class McapLogger:
             self._channels[topic] = self._writer.register_channel(
                 topic=topic, message_encoding=encoding, schema_id=schema_id
             )
+            if self.live is not None:
+                self.live.channel(topic, *self._schema_defs[schema_id], encoding)
         return self._channels[topic]
 
     def _write(self, topic: str, t: float, data: bytes, schema_id: int, encoding: str) -> None:
@@ -182,6 +200,8 @@ class McapLogger:
             publish_time=ns,
             data=data,
         )
+        if self.live is not None:
+            self.live.publish(topic, ns, data)
 
     def write_grid(self, topic: str, t: float, values: np.ndarray) -> None:
         """A field message on ``topic`` (fields named as in :data:`FIELD_TOPICS`)."""

@@ -27,7 +27,9 @@ from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from harness.build import build
+from harness.checks import ConfigError
 from harness.fokker_planck import NumericalError
+from harness.live import LiveServer, LiveServerError
 from harness.loop import ClosedLoop
 from harness.mcap_log import McapLogger
 from harness.metrics import metrics
@@ -105,6 +107,7 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
             finalised with status ``aborted``.
     """
     parts = build(cfg)
+    live = start_live(cfg)
     out_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(cfg.seed)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
@@ -118,6 +121,7 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
         cfg.log.field_every,
         cfg.log.positions_every,
         steps,
+        live=live,
     )
     progress = {"auto": None, "on": True, "off": False}.get(cfg.log.progress, None)
     bar = tqdm(
@@ -176,11 +180,29 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     finally:
         bar.close()
         logger.finalize(state, reason, time.perf_counter() - t0)
+        if live is not None:
+            live.close()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return RunResult(
         state, reason, done, time.perf_counter() - t0, logger.path, last, logger.seconds
     )
+
+
+def start_live(cfg: DictConfig) -> LiveServer | None:
+    """The live server of ``log.live`` (None when off).
+
+    Raises:
+        ConfigError: naming ``log.live_port`` when the server cannot start there.
+    """
+    if not cfg.log.live:
+        return None
+    try:
+        server = LiveServer(cfg.log.live_host, cfg.log.live_port)
+    except LiveServerError as err:
+        raise ConfigError("log.live_port", cfg.log.live_port, str(err)) from None
+    print(f"live view: {server.url} (Foxglove: Open connection)", file=sys.stderr)
+    return server
 
 
 def threading_is_main() -> bool:

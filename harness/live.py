@@ -1,0 +1,133 @@
+"""Live view of a run over Foxglove's WebSocket protocol (foxglove-sdk).
+
+:class:`LiveServer` serves the channels of ``run.mcap`` (same topic names, schemas and
+message bytes; see ``harness/mcap_log.py``) to Foxglove while the run is going: open
+Foxglove, choose *Open connection*, then ``ws://127.0.0.1:8765`` (the host and port
+given here), and add a 3D panel for ``/fields/*`` and ``/swarm/positions`` and a Plot
+panel for ``/metrics``.
+
+The server is a sink beside the MCAP writer, never in its path: it receives the bytes
+that were written, copies them into foxglove-sdk's per-client queues (bounded; the
+oldest message is dropped for a slow client) and returns. A channel nobody subscribes
+to is skipped before any copy, so a run without clients pays one dictionary lookup and
+one flag test per message. The server uses its own :class:`foxglove.Context`, so it
+never sees channels of other code in the process and other sinks never see its own.
+Message times are the simulated times of the log (integer ns from t = 0), so Foxglove
+shows the run's clock starting at the epoch.
+"""
+
+from __future__ import annotations
+
+import foxglove
+
+DEFAULT_HOST = "127.0.0.1"
+DEFAULT_PORT = 8765
+
+
+class LiveServerError(RuntimeError):
+    """The live server could not start (for example, its port is in use)."""
+
+
+class LiveServer:
+    """A Foxglove WebSocket server for the topics of a run.
+
+    Args:
+        host: Address to bind (``127.0.0.1``: this machine only).
+        port: TCP port (``0``: any free port; read :attr:`port` afterwards).
+        name: Server name shown in Foxglove.
+        backlog: Messages queued per client before the oldest is dropped.
+
+    Raises:
+        LiveServerError: if the server cannot bind ``host:port``; the message is one
+            line naming the address and the cause.
+    """
+
+    def __init__(
+        self,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        name: str = "densityloop",
+        backlog: int = 1024,
+    ) -> None:
+        self.host = host
+        self._context = foxglove.Context()
+        self._channels: dict[str, foxglove.Channel] = {}
+        try:
+            self._server = foxglove.start_server(
+                name=name,
+                host=host,
+                port=port,
+                context=self._context,
+                message_backlog_size=backlog,
+            )
+        except RuntimeError as err:
+            cause = str(err).removeprefix("FoxgloveError: ").strip()
+            raise LiveServerError(
+                f"live view: cannot serve on ws://{host}:{port}: {cause} "
+                f"(choose another log.live_port or stop the program using it)"
+            ) from None
+        self.port: int = self._server.port
+        self._closed = False
+
+    @property
+    def url(self) -> str:
+        """``ws://host:port``, the address to open in Foxglove."""
+        return f"ws://{self.host}:{self.port}"
+
+    def channel(
+        self,
+        topic: str,
+        schema_name: str,
+        schema_encoding: str,
+        schema_data: bytes,
+        message_encoding: str,
+    ) -> None:
+        """Advertise ``topic`` to clients (idempotent: a known topic is left as it is).
+
+        Args:
+            topic: Topic name, as in ``run.mcap``.
+            schema_name: Schema name (``foxglove.Grid``, ``densityloop.Metrics``, ...).
+            schema_encoding: ``protobuf`` (a serialized FileDescriptorSet) or
+                ``jsonschema``.
+            schema_data: The schema record's bytes, as in ``run.mcap``.
+            message_encoding: ``protobuf`` or ``json``.
+        """
+        if self._closed or topic in self._channels:
+            return
+        schema = foxglove.Schema(name=schema_name, encoding=schema_encoding, data=schema_data)
+        self._channels[topic] = foxglove.Channel(
+            topic, schema=schema, message_encoding=message_encoding, context=self._context
+        )
+
+    def subscribed(self, topic: str) -> bool:
+        """Whether a client currently subscribes to ``topic``."""
+        ch = self._channels.get(topic)
+        return ch is not None and not self._closed and ch.has_sinks()
+
+    def publish(self, topic: str, log_time_ns: int, data: bytes) -> None:
+        """Send one message to the clients subscribed to ``topic``; never blocks.
+
+        Args:
+            topic: An advertised topic (see :meth:`channel`); others are ignored.
+            log_time_ns: Message time (integer ns of simulated time).
+            data: The serialized message, byte for byte as written to the log.
+        """
+        ch = self._channels.get(topic)
+        if ch is None or self._closed or not ch.has_sinks():
+            return
+        ch.log(data, log_time=log_time_ns)
+
+    def close(self) -> None:
+        """Unadvertise every channel and stop the server (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for ch in self._channels.values():
+            ch.close()
+        self._server.stop()
+
+    def __enter__(self) -> LiveServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
