@@ -120,5 +120,5 @@ def build(cfg: DictConfig) -> Experiment:
     plant = component(cfg, "plant", grid=grid, model=model, init=init)
     estimator = component(cfg, "estimator", grid=grid, model=model)
     control = component(cfg, "control", target=target)
-    check_built(cfg, grid, p0, control)
+    check_built(cfg, grid, target, control, plant, estimator)
     return Experiment(grid, target, init, p0, model, plant, estimator, control)

@@ -22,11 +22,6 @@ from harness.densities import Box, Target
 from harness.grid import Grid
 from harness.kde import KDE
 
-SAMPLED_DATA_FACTOR = 10.0
-"""``sim.dt`` may exceed the worst-case sampled-data bound
-(:func:`harness.control.sampled_data_dt_bound`, which the paper's own setting meets
-only to within 7 %) by at most this factor; beyond it the held feedback overshoots."""
-
 MAX_STEPS = 10_000_000
 """Largest number of steps ``sim.t_final / sim.dt`` of one run."""
 
@@ -129,15 +124,32 @@ def target_on_grid(density: Density, grid: Grid) -> Target:
         raise ConfigError("target", density, str(err)) from None
 
 
-def check_built(cfg: DictConfig, grid: Grid, p0: np.ndarray, control: Control) -> None:
-    """Checks across components: the sampled-data step bound of the control law for
-    this grid and start (:func:`harness.control.sampled_data_dt_bound`).
+def resolution(plant: Any, estimator: Any) -> float | None:
+    """The smallest scale (length) the estimates resolve: the estimator's
+    ``resolution(measured)`` of the plant's measurement ``resolution`` (None: grid
+    resolution, also for components that do not say).
+    """
+    measured = getattr(plant, "resolution", None)
+    of = getattr(estimator, "resolution", None)
+    return of(measured) if callable(of) else None
 
+
+def check_built(
+    cfg: DictConfig, grid: Grid, target: Target, control: Control, plant: Any, estimator: Any
+) -> None:
+    """Checks across components: the sampled-data step bound
+    (:func:`harness.control.sampled_data_dt_bound`) of the control law near the target,
+    for the resolution of the estimates the plant and estimator give (:func:`resolution`).
+
+    Near ``p_*`` the feedback diffusivity is the law's at ``p = p_*`` (``alpha`` for the
+    paper's law); a ``dt`` above the bound there makes the loop unstable on some grid
+    mode and is refused. (Far from the target, at the start, the diffusivity can be
+    larger, ``alpha max(p_0 / p_*)``; an overshoot there is transient and not refused.)
     A law without :meth:`~harness.components.Control.feedback_diffusivity` (or returning
     None) is not refused; a :class:`ConfigWarning` says the bound was not checked.
     """
     rate = getattr(control, "feedback_diffusivity", None)
-    diffusivity = rate(p0) if rate is not None else None
+    diffusivity = rate(target.p) if rate is not None else None
     if diffusivity is None:
         warnings.warn(
             f"{type(control).__name__} gives no feedback diffusivity: the sampled-data "
@@ -146,14 +158,15 @@ def check_built(cfg: DictConfig, grid: Grid, p0: np.ndarray, control: Control) -
             stacklevel=2,
         )
         return
-    bound = sampled_data_dt_bound(grid, diffusivity)
-    require_ok = cfg.sim.dt <= SAMPLED_DATA_FACTOR * bound
-    if not require_ok:
+    h = resolution(plant, estimator)
+    bound = sampled_data_dt_bound(grid, diffusivity, h, cfg.dynamics.sigma)
+    if cfg.sim.dt > bound:
+        scale = "grid resolution" if h is None else f"resolution {h:g}"
         raise ConfigError(
             "sim.dt",
             cfg.sim.dt,
-            f"at most {SAMPLED_DATA_FACTOR:g} x the sampled-data bound {bound:.3g} s "
-            "for this control, grid and start (harness.control.sampled_data_dt_bound)",
+            f"at most the sampled-data bound {bound:.3g} s for this control near the "
+            f"target, grid and estimates of {scale} (harness.control.sampled_data_dt_bound)",
         )
 
 

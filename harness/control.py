@@ -17,6 +17,7 @@ import numpy as np
 from harness.components import flag, number
 from harness.densities import Target
 from harness.grid import Grid
+from harness.smoothing import transfer
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
 
 
@@ -95,35 +96,88 @@ def heat_law(
     return VelocityField.from_centres(centres)
 
 
-def sampled_data_dt_bound(grid: Grid, diffusivity: float) -> float:
-    """Largest ``dt`` for which the held feedback does not overshoot at grid scale.
+def grid_modes(grid: Grid, resolution: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per cosine mode: the eigenvalue of the held feedback's discrete operator and of
+    the robots' implicit diffusion (both 1 / length^2, arrays of shape ``(ny, nx)``).
+
+    The Neumann cosine modes ``cos(k_i (x - x0)) cos(k_j (y - y0))``, ``k_i = i pi /
+    Lx`` (``0 <= i < nx``), ``k_j = j pi / Ly``, are eigenvectors of every operator here.
+    With ``theta_i = k_i dx``:
+
+    * diffusion (the 5-point Laplacian of eq. ``FP equation``'s backward-Euler step):
+      ``(4 / dx^2) sin^2(theta_i / 2)`` per axis, summed;
+    * feedback: the laws put the centre values of their velocity on the faces by
+      averaging, and the flux's divergence then acts on a cosine mode of the gradient
+      estimate as ``-cos(k x) sin(theta) / dx`` times the mode's gradient amplitude.
+      With grid gradients ``G p`` (exact estimates; ``resolution = None``) that
+      amplitude is ``sin(theta) / dx``, giving ``sin^2(theta_i) / dx^2`` per axis; with
+      analytic gradients of estimates smoothed at scale ``h`` (the KDE, the noise-free
+      KDE) it is ``k T(k)``, giving ``k_i sin(theta_i) / dx`` per axis, the sum times
+      ``T = exp(-|k|^2 h^2 / 2)`` (:func:`harness.smoothing.transfer`).
+    """
+    i = np.arange(grid.nx)
+    j = np.arange(grid.ny)
+    kx, ky = i * np.pi / (grid.x1 - grid.x0), j * np.pi / (grid.y1 - grid.y0)
+    tx, ty = kx * grid.dx, ky * grid.dy
+    diff_x = (4 / grid.dx**2) * np.sin(tx / 2) ** 2
+    diff_y = (4 / grid.dy**2) * np.sin(ty / 2) ** 2
+    if resolution is None:
+        fb_x, fb_y = np.sin(tx) ** 2 / grid.dx**2, np.sin(ty) ** 2 / grid.dy**2
+    else:
+        fb_x, fb_y = kx * np.sin(tx) / grid.dx, ky * np.sin(ty) / grid.dy
+    damping = transfer(np.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2), resolution)
+    feedback = (fb_y[:, None] + fb_x[None, :]) * damping
+    return feedback, diff_y[:, None] + diff_x[None, :]
+
+
+def sampled_data_dt_bound(
+    grid: Grid, diffusivity: float, resolution: float | None = None, sigma: float = 0.0
+) -> float:
+    """Largest ``dt`` for which the held feedback is stable on every grid mode.
 
     The control is computed once per step and held for ``dt`` (sampled data). With
     exact estimates the feedback term of the paper's law acts as the nonlinear
     diffusion ``div(alpha p grad(p / p_*))``, of local diffusivity ``D = alpha p /
-    p_*`` (:meth:`PaperControl.feedback_diffusivity` gives its largest value ``D``).
-    Held over ``dt``, a grid-scale mode of the discrete Laplacian (eigenvalue up to
-    ``lambda_max = 4/dx^2 + 4/dy^2``) is multiplied by ``1 - dt D lambda_max``, which
-    leaves ``[-1, 1]`` when
+    p_*`` (:meth:`PaperControl.feedback_diffusivity`). Linearised about a state, a
+    cosine mode is fed back with the eigenvalue ``mu`` of the held feedback's discrete
+    operator (which includes the estimates' smoothing, :func:`grid_modes`) explicitly,
+    because the velocity is held, while the robots' own diffusion ``sigma`` acts on it
+    implicitly with eigenvalue ``lambda`` (the backward-Euler step of eq. ``FP
+    equation``). Per step the mode is multiplied by
 
-        dt > 2 / (D lambda_max).
+        (1 - dt D mu) / (1 + dt sigma lambda),
 
-    The bound concerns the physical sampled-data loop, not the Fokker-Planck
-    stepper (which is implicit and stable for every ``dt``): the robots receive
-    the same held velocity. Estimates smoothed by a KDE of bandwidth ``h`` carry
-    little grid-scale content, so in practice the loop tolerates more.
+    which leaves ``[-1, 1]`` (a grid-scale overshoot that grows) when ``dt (D mu -
+    sigma lambda) > 2``. So the bound is
+
+        dt_max = 2 / max_k (D mu_k - sigma lambda_k)
+
+    (``inf`` when no mode has a positive denominator). With exact estimates ``mu``
+    peaks at ``1 / dx^2 + 1 / dy^2``. At the agent level the law sees the robots only
+    through the KDE, so the maximum is set by the bandwidth ``h`` and not by ``dx``:
+    ``k^2 exp(-k^2 h^2 / 2)`` peaks at ``|k| = sqrt(2) / h`` at ``2 / (e h^2)`` (460 /
+    length^2 for ``h = 0.04`` on every fine grid, against ``2 / dx^2`` = 32800 at
+    ``n = 128`` with exact estimates).
+
+    The bound concerns the physical sampled-data loop, not the Fokker-Planck stepper
+    (which is implicit and stable for every ``dt``): the robots receive the same held
+    velocity.
 
     Args:
         grid: The grid.
         diffusivity: ``D``, the largest feedback diffusivity (length^2 / s).
+        resolution: The estimates' smallest resolved scale ``h`` (length), or None for
+            grid resolution.
+        sigma: The robots' noise intensity (length^2 / s).
 
     Returns:
-        The bound in time units (``inf`` when ``D = 0``).
+        The bound in seconds.
     """
-    lam_max = 4.0 / grid.dx**2 + 4.0 / grid.dy**2
-    if diffusivity <= 0:
+    feedback, diffusion = grid_modes(grid, resolution)
+    denominator = float(np.max(diffusivity * feedback - sigma * diffusion))
+    if denominator <= 0:
         return float("inf")
-    return 2.0 / (diffusivity * lam_max)
+    return 2.0 / denominator
 
 
 class PaperControl:

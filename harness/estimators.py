@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.components import ParameterError, integer, number
+from harness.components import ParameterError, flag, integer, number
 from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.engines import FilterEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.records import Estimate, StepInput
+from harness.smoothing import Smoother
 
 
 class KDEEstimator:
@@ -29,6 +30,10 @@ class KDEEstimator:
 
     def __init__(self, grid: Grid, model: FokkerPlanck) -> None:
         self.grid = grid
+
+    def resolution(self, measured: float | None) -> float | None:
+        """The measurement's own resolution (length)."""
+        return measured
 
     def initialize(self, inp: StepInput) -> Estimate:
         """The raw KDE."""
@@ -51,6 +56,38 @@ class ExactEstimator:
     def initialize(self, inp: StepInput) -> Estimate:
         """The mean-field density and its grid gradient."""
         return Estimate(inp.p_true, self.grid.gradient(inp.p_true))
+
+    step = initialize
+
+
+class SmoothedEstimator:
+    """``p_hat = K_h * p``, ``q_hat = grad(K_h * p)``: the noise-free KDE of the plant's
+    mean-field density ``p`` (``estimator=smoothed``), what the KDE of infinitely many
+    robots distributed as ``p`` would measure (:class:`harness.smoothing.Smoother`).
+    On the mean-field plant it is the ``N -> infinity`` limit of the agent loop with the
+    raw KDE.
+
+    Args:
+        grid, model: Run-time arguments.
+        bandwidth: Kernel standard deviation ``h > 0`` (length).
+        mirror: Wall images.
+    """
+
+    uses_kde = False
+
+    def __init__(
+        self, grid: Grid, model: FokkerPlanck, bandwidth: float, mirror: bool = True
+    ) -> None:
+        self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
+        self.smoother = Smoother(grid, self.bandwidth, flag("mirror", mirror))
+
+    def resolution(self, measured: float | None) -> float | None:
+        """The kernel's bandwidth ``h`` (length)."""
+        return self.bandwidth
+
+    def initialize(self, inp: StepInput) -> Estimate:
+        """The smoothed mean-field density and its gradient."""
+        return Estimate(*self.smoother(inp.p_true))
 
     step = initialize
 

@@ -69,6 +69,7 @@ class Agents(_MeanFieldDensity):
         require(method in KDE.METHODS, "method", method, f"one of {', '.join(KDE.METHODS)}")
         self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method)
         self.swarm: Swarm | None = None
+        self.resolution: float | None = h  # the KDE resolves no scale below h
 
     @property
     def positions(self) -> np.ndarray | None:
@@ -103,6 +104,7 @@ class MeanField(_MeanFieldDensity):
     """
 
     positions = None
+    resolution = None  # white noise per cell: grid resolution
 
     def __init__(
         self, grid: Grid, model: FokkerPlanck, init: Density, robots: int, bandwidth: float
