@@ -153,7 +153,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON")
     args = parser.parse_args()
     laws = ["paper", "debiased"] if args.law == "both" else [args.law]
-    results = [run_one(law, args.n, args.t_final, args.seed, args.draws, args.every) for law in laws]
+    results = [
+        run_one(law, args.n, args.t_final, args.seed, args.draws, args.every) for law in laws
+    ]
     print(f"\nN = {args.n}, t = {args.t_final:g} s, seed {args.seed}:")
     for r in results:
         last = r["rows"][-1]

@@ -339,9 +339,7 @@ def swarm_w2(
                 xs, target.points, a, target.weights, p=2, projections=_projections(n_projections)
             )
         )
-    raise ValueError(
-        f"swarm_w2 method must be auto, emd, sliced or sliced_pot, got {method!r}"
-    )
+    raise ValueError(f"swarm_w2 method must be auto, emd, sliced or sliced_pot, got {method!r}")
 
 
 def sliced_w2(
