@@ -2,6 +2,7 @@
 
     python -m benchmarks.debias_check [--n 16384] [--t-final 60] [--law both] [--seed 0]
                                       [--draws 200] [--out result.json]
+    python -m benchmarks.debias_check --certificate [--grid 30]
 
 Builds the paper's closed loop (agents, KDE, both filters, paper's law; the composed
 ``closed_loop`` config with ``agents.n`` and ``sim.t_final`` overridden) with
@@ -14,6 +15,12 @@ from ``p_*``), and ``||p_hat - p_*||`` and ``||p_hat - K_h * p_*||``.
 
 The issue's bar: the debiased loop within 1.3 times its ``swarm_l2`` floor by
 t = 60 s, the paper's loop above 2 times (N = 16384).
+
+``--certificate`` prints the linearised stability facts of docs/debias.md for the
+default target and the paper's gains: the range of the generalised eigenvalues of
+the symmetric part of the cross form ``Q`` against ``S = int p_* |grad u|^2``
+(condition (C) holds near ``p_*`` when the minimum exceeds ``-sigma / alpha``), and
+the slowest decay rates of the linearised debiased and paper loops.
 """
 
 from __future__ import annotations
@@ -24,12 +31,16 @@ import time
 from pathlib import Path
 
 import numpy as np
+import scipy.linalg as sl
+import scipy.sparse as sp
 from hydra import compose, initialize_config_dir
 from threadpoolctl import threadpool_limits
 
 from harness.config import density_spec, register_configs
 from harness.control import paper_law
-from harness.densities import Target, make_density
+from harness.densities import DEFAULT_TARGET, Target, make_density
+from harness.grid import Grid
+from harness.kde import _kernel_1d
 from harness.loop import ControlLaw
 from harness.run import build_loop
 from harness.swarm_metrics import (
@@ -142,6 +153,55 @@ def run_one(
     }
 
 
+def certificate(n: int = 30, h: float = 0.04, alpha: float = 0.003, sigma: float = 5e-5) -> None:
+    """Linearised dissipation and spectrum at ``p_*`` (see the module docstring).
+
+    In ``u = Phi / p_*`` on the grid: ``S = G^T P G`` (``P = diag p_*`` on both gradient
+    components) and the cross form ``B = S K diag(p_*) / p~_*`` with ``K`` the KDE's
+    kernel on the cells; both restricted to mass-zero perturbations. The linearised
+    loops on ``Phi``: debiased ``-alpha S K / p~_* - sigma L_c / p_*``, paper ``-(alpha
+    S + sigma L_c) / p_*``, with ``L_c`` the compact face-difference operator of the
+    Fokker-Planck step (face values of ``p_*`` by averaging).
+    """
+    g = Grid.square(n)
+    ps = DEFAULT_TARGET.on_grid(g).ravel()
+    pt = smoothed_density(DEFAULT_TARGET, g, h).ravel()
+    kx, _ = _kernel_1d(g.x, g.x, h, g.x0, g.x1, True)
+    ky, _ = _kernel_1d(g.y, g.y, h, g.y0, g.y1, True)
+    k = np.kron(ky * g.dy, kx * g.dx)
+    gm = g.gradient_matrix.toarray()
+    s_form = gm.T @ (np.concatenate([ps, ps])[:, None] * gm)
+
+    def diff(m: int, d: float) -> sp.spmatrix:
+        return sp.diags([-np.ones(m - 1), np.ones(m - 1)], [0, 1], shape=(m - 1, m)) / d
+
+    dm = sp.vstack(
+        [sp.kron(sp.identity(n), diff(n, g.dx)), sp.kron(diff(n, g.dy), sp.identity(n))]
+    ).toarray()
+    p_face = 0.5 * (np.abs(dm) * g.dx) @ ps
+    l_c = dm.T @ (p_face[:, None] * dm)
+    basis, _ = np.linalg.qr(np.column_stack([ps, np.eye(n * n)[:, : n * n - 1]]))
+    z = basis[:, 1:]
+    b = s_form @ ((k * ps[None, :]) / pt[:, None])
+    b = 0.5 * (b + b.T)
+    w = sl.eigh(z.T @ b @ z, z.T @ s_form @ z, eigvals_only=True)
+    print(
+        f"n = {n}: Q / S in [{w.min():.4f}, {w.max():.4f}]; -sigma / alpha = {-sigma / alpha:.4f}"
+    )
+    loops = {
+        "debiased": -alpha * s_form @ (k / pt[:, None]) - sigma * l_c / ps[None, :],
+        "paper": -(alpha * s_form + sigma * l_c) / ps[None, :],
+    }
+    for name, a in loops.items():
+        ev = np.linalg.eigvals(a)
+        ev = ev[np.argsort(-ev.real)]
+        rates = ", ".join(f"{-e.real:.4f}" for e in ev[1:4])
+        print(
+            f"  {name:9s} mass mode {ev[0].real:.1e}, slowest rates (1/s) {rates}, "
+            f"max |imag| {np.abs(ev.imag).max():.3f}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=16384, help="robots")
@@ -151,7 +211,12 @@ def main() -> None:
     parser.add_argument("--draws", type=int, default=200, help="Monte-Carlo draws of the floor")
     parser.add_argument("--every", type=float, default=10.0, help="print interval (s)")
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON")
+    parser.add_argument("--certificate", action="store_true", help="linearised facts only")
+    parser.add_argument("--grid", type=int, default=30, help="cells per side (certificate)")
     args = parser.parse_args()
+    if args.certificate:
+        certificate(args.grid)
+        return
     laws = ["paper", "debiased"] if args.law == "both" else [args.law]
     results = [
         run_one(law, args.n, args.t_final, args.seed, args.draws, args.every) for law in laws

@@ -57,6 +57,7 @@ from math import sqrt
 import numpy as np
 import ot
 from scipy.special import ndtr
+from threadpoolctl import threadpool_limits
 
 from harness.densities import Box, Density, GaussianMixture, Uniform
 from harness.grid import Grid
@@ -360,8 +361,9 @@ def sliced_w2(
     x = np.asarray(positions, dtype=float)
     n = x.shape[1]
     dirs = _projections(n_projections)
-    xp = np.sort(dirs.T @ x, axis=1)
-    yp = dirs.T @ target.points.T
+    # elementwise products, not BLAS: a threaded GEMM of this shape stalls on a busy host
+    xp = np.sort(np.outer(dirs[0], x[0]) + np.outer(dirs[1], x[1]), axis=1)
+    yp = np.outer(dirs[0], target.points[:, 0]) + np.outer(dirs[1], target.points[:, 1])
     t_grid = np.arange(n + 1) / n
     total = 0.0
     for j in range(n_projections):
@@ -435,8 +437,9 @@ def floors(
         raise ValueError(f"floors need at least 2 draws, got {draws}")
     l2 = np.empty(draws)
     w = np.empty(draws)
-    for i in range(draws):
-        x = density.sample(n_robots, grid, rng)
-        l2[i] = swarm_l2(x, kde, smoothed_target, grid)
-        w[i] = swarm_w2(x, target, w2, n_projections)
+    with threadpool_limits(1):  # small BLAS calls on many threads stall on a busy host
+        for i in range(draws):
+            x = density.sample(n_robots, grid, rng)
+            l2[i] = swarm_l2(x, kde, smoothed_target, grid)
+            w[i] = swarm_w2(x, target, w2, n_projections)
     return {"swarm_l2": _band(l2), "swarm_w2": _band(w)}
