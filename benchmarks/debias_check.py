@@ -3,6 +3,7 @@
     python -m benchmarks.debias_check [--n 16384] [--t-final 60] [--law both] [--seed 0]
                                       [--draws 200] [--out result.json]
     python -m benchmarks.debias_check --certificate [--grid 30]
+    python -m benchmarks.debias_check --costs
 
 Builds the paper's closed loop (agents, KDE, both filters, paper's law; the composed
 ``closed_loop`` config with ``agents.n`` and ``sim.t_final`` overridden) with
@@ -21,6 +22,9 @@ default target and the paper's gains: the range of the generalised eigenvalues o
 the symmetric part of the cross form ``Q`` against ``S = int p_* |grad u|^2``
 (condition (C) holds near ``p_*`` when the minimum exceeds ``-sigma / alpha``), and
 the slowest decay rates of the linearised debiased and paper loops.
+
+``--costs`` times the swarm metrics per call (median of 5, BLAS on one thread as in
+the run) at N = 1024 to 65536 on the 30 x 30 grid, and one floor draw at N = 65536.
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ from harness.config import density_spec, register_configs
 from harness.control import paper_law
 from harness.densities import DEFAULT_TARGET, Target, make_density
 from harness.grid import Grid
-from harness.kde import _kernel_1d
+from harness.kde import KDE, _kernel_1d
 from harness.loop import ControlLaw
 from harness.run import build_loop
 from harness.swarm_metrics import (
@@ -202,6 +206,38 @@ def certificate(n: int = 30, h: float = 0.04, alpha: float = 0.003, sigma: float
         )
 
 
+def costs(repeats: int = 5) -> None:
+    """Median wall time per call of the swarm metrics (see the module docstring)."""
+    g = Grid.square(30)
+    kde = KDE(g, 0.04)
+    smooth = smoothed_density(DEFAULT_TARGET, g, 0.04)
+    measures = {r: TargetMeasure.from_density(DEFAULT_TARGET, g, r) for r in (1, 4)}
+    rng = np.random.default_rng(0)
+
+    def timed(fn, *args) -> float:
+        out = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn(*args)
+            out.append(time.perf_counter() - t0)
+        return 1e3 * float(np.median(out))
+
+    with threadpool_limits(1):
+        t0 = time.perf_counter()
+        smoothed_density(DEFAULT_TARGET, g, 0.04)
+        print(f"smoothed_density (once per run): {1e3 * (time.perf_counter() - t0):.2f} ms")
+        for n in (1024, 4096, 16384, 65536):
+            x = DEFAULT_TARGET.sample(n, g, rng)
+            swarm_l2(x, kde, smooth, g)
+            line = [f"N = {n:6d}: swarm_l2 {timed(swarm_l2, x, kde, smooth, g):7.2f} ms"]
+            for r, m in measures.items():
+                line.append(f"sliced(refine {r}) {timed(swarm_w2, x, m, 'sliced'):7.1f} ms")
+            if n <= 4096:
+                line.append(f"emd(refine 1) {timed(swarm_w2, x, measures[1], 'emd'):7.1f} ms")
+            line.append(f"sample p_* {timed(DEFAULT_TARGET.sample, n, g, rng):6.1f} ms")
+            print(", ".join(line), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=16384, help="robots")
@@ -213,7 +249,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None, help="write the results as JSON")
     parser.add_argument("--certificate", action="store_true", help="linearised facts only")
     parser.add_argument("--grid", type=int, default=30, help="cells per side (certificate)")
+    parser.add_argument("--costs", action="store_true", help="time the swarm metrics only")
     args = parser.parse_args()
+    if args.costs:
+        costs()
+        return
     if args.certificate:
         certificate(args.grid)
         return
