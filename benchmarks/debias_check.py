@@ -37,14 +37,14 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg as sl
 import scipy.sparse as sp
+from harness.config import density_spec, register_configs
 from hydra import compose, initialize_config_dir
 from threadpoolctl import threadpool_limits
 
-from harness.config import density_spec, register_configs
 from harness.control import paper_law
 from harness.densities import DEFAULT_TARGET, Target, make_density
 from harness.grid import Grid
-from harness.kde import KDE, _kernel_1d
+from harness.kde import KDE, kernel_1d
 from harness.loop import ControlLaw
 from harness.run import build_loop
 from harness.swarm_metrics import (
@@ -170,8 +170,8 @@ def certificate(n: int = 30, h: float = 0.04, alpha: float = 0.003, sigma: float
     g = Grid.square(n)
     ps = DEFAULT_TARGET.on_grid(g).ravel()
     pt = smoothed_density(DEFAULT_TARGET, g, h).ravel()
-    kx, _ = _kernel_1d(g.x, g.x, h, g.x0, g.x1, True)
-    ky, _ = _kernel_1d(g.y, g.y, h, g.y0, g.y1, True)
+    kx, _ = kernel_1d(g.x, g.x, h, g.x0, g.x1, True)
+    ky, _ = kernel_1d(g.y, g.y, h, g.y0, g.y1, True)
     k = np.kron(ky * g.dy, kx * g.dx)
     gm = g.gradient_matrix.toarray()
     s_form = gm.T @ (np.concatenate([ps, ps])[:, None] * gm)

@@ -76,10 +76,13 @@ def check_shared(cfg: DictConfig) -> None:
     if h > length:
         raise ConfigError("kde.bandwidth", h, f"at most the domain side {length}")
     _shared("kde.mirror", flag, kde.get("mirror"))
+    _shared("kde.debias", flag, kde.get("debias"))
     if kde.get("method") not in KDE.METHODS:
         raise ConfigError("kde.method", kde.get("method"), f"one of {', '.join(KDE.METHODS)}")
     _shared("log.field_every", integer, log.get("field_every"), 1)
     _shared("log.positions_every", integer, log.get("positions_every"), 1)
+    _shared("log.w2_every", integer, log.get("w2_every"), 1)
+    _shared("log.floor_draws", integer, log.get("floor_draws"), 2)
     _shared("log.live", flag, log.get("live"))
     port = _shared("log.live_port", integer, log.get("live_port"), 0)
     if port > 65535:

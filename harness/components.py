@@ -15,7 +15,8 @@ Run-time keyword arguments, by group:
 
 * density (``target``, ``init``): none;
 * ``plant``: ``grid`` (:class:`~harness.grid.Grid`), ``model``
-  (:class:`~harness.fokker_planck.FokkerPlanck`), ``init`` (a :class:`Density`);
+  (:class:`~harness.fokker_planck.FokkerPlanck`), ``init`` (a :class:`Density`),
+  ``control`` (the run's :class:`Control`, for a plant's own mean-field limit);
 * ``estimator``: ``grid``, ``model``;
 * ``control``: ``target`` (:class:`~harness.densities.Target`).
 
@@ -107,8 +108,8 @@ class Plant(Protocol):
 
     Attributes:
         density: The mean-field density ``(ny, nx)`` (1 / length^2) the plant carries: its
-            state (``meanfield``) or the Fokker-Planck reference under the applied
-            velocity (``agents``).
+            state (``meanfield``) or the loop's deterministic ``N -> infinity`` limit
+            (``agents``).
         positions: Robot positions ``(2, N)`` (length), or None without robots.
     """
 

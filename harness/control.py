@@ -17,7 +17,7 @@ import numpy as np
 from harness.components import flag, number
 from harness.densities import Target
 from harness.grid import Grid
-from harness.smoothing import transfer
+from harness.smoothing import smoothed_target, transfer
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
 
 
@@ -29,7 +29,12 @@ def _check_gains(alpha: float, sigma: float) -> None:
 
 
 def paper_law(
-    p_hat: np.ndarray, q_hat: np.ndarray, target: Target, alpha: float, sigma: float
+    p_hat: np.ndarray,
+    q_hat: np.ndarray,
+    target: Target,
+    alpha: float,
+    sigma: float,
+    feedback_target: Target | None = None,
 ) -> VelocityField:
     """The paper's law with estimates (eq. ``modified density feedback law using
     estimates``):
@@ -48,10 +53,15 @@ def paper_law(
     :mod:`harness.fokker_planck` this makes ``p_*`` an exact discrete steady state
     for ``alpha = 0``, and for every ``alpha`` when ``p_hat = p_*`` and ``q_hat``
     is the grid gradient of ``p_*``.
+
+    ``feedback_target`` (default ``target``) replaces ``p_*`` in the feedback term only;
+    the debiased law passes the smoothed target ``K_h * p_*`` there (see
+    :class:`PaperControl`).
     """
     _check_gains(alpha, sigma)
     g = target.grid
-    feedback = -alpha * (target.p * q_hat - p_hat * target.grad) / target.p**2
+    f = target if feedback_target is None else feedback_target
+    feedback = -alpha * (f.p * q_hat - p_hat * f.grad) / f.p**2
     drift = sigma * target.grad / target.p
     centres = feedback + drift
     face_x = centres_to_face_x(feedback[0]) + sigma * np.diff(target.log_p, axis=1) / g.dx
@@ -67,6 +77,7 @@ def heat_law(
     sigma: float,
     density_floor: float = 0.1,
     noise_compensation: bool = True,
+    feedback_target: Target | None = None,
 ) -> VelocityField:
     """The prior heat-equation law, estimate in the denominator (the paper's
     remark after eq. ``modified density feedback law 1`` contrasts it):
@@ -85,12 +96,14 @@ def heat_law(
             denominator away from zero where ``p_hat`` is small or negative. The
             default 0.1 is a tenth of the uniform density on the unit square.
         noise_compensation: Include the ``+sigma q_hat / p_hat`` term.
+        feedback_target: Replaces ``p_*`` in the feedback term (the debiased law).
     """
     _check_gains(alpha, sigma)
     if not density_floor > 0:
         raise ValueError(f"heat law density_floor must be > 0, got {density_floor}")
     denom = np.maximum(p_hat, density_floor)
-    centres = -alpha * (q_hat - target.grad) / denom
+    f = target if feedback_target is None else feedback_target
+    centres = -alpha * (q_hat - f.grad) / denom
     if noise_compensation:
         centres = centres + sigma * q_hat / denom
     return VelocityField.from_centres(centres)
@@ -183,26 +196,78 @@ def sampled_data_dt_bound(
 class PaperControl:
     """The paper's law (``control=paper``), :func:`paper_law` with fixed gains.
 
+    Debiased law (``kde.debias=true``). The KDE measures ``p~ = K_h * p``, the density
+    smoothed by its kernel, and the filters (measurement operator ``H = I``) estimate
+    that; with ``p_hat = p~`` the paper's law drives the swarm until ``p~ = p_*``, i.e.
+    to the sharpened ``p = K_h^{-1} p_*``. The debiased law compares the estimates with
+    what they estimate, the smoothed target ``p~_* = K_h * p_*``
+    (:func:`harness.smoothing.smoothed_target`), in the feedback term only:
+
+        v = -alpha (p~_* q_hat - p_hat grad p~_*) / p~_*^2 + sigma grad p_* / p_*.
+
+    Fixed point: with ``p_hat = p~`` and ``q_hat = grad p~`` the zero-flux condition is
+    ``alpha p grad(p~ / p~_*) + sigma p_* grad(p / p_*) = 0``; at ``p = p_*`` both
+    terms vanish, so the robots' distribution at the fixed point is ``p_*`` itself; and
+    a fixed point with ``p~ = p~_*`` has ``p = p_*`` because ``K_h`` is injective (it
+    multiplies each Neumann cosine mode by ``exp(-k^2 h^2 / 2) > 0``). On the grid,
+    ``p_hat = p~_*``, ``q_hat = G p~_*`` make the feedback term vanish exactly and the
+    face drift keeps ``p_*`` the exact steady state.
+
+    ISS (Theorem ``thm:ISS``). With ``eps~ = p_hat - p~`` and ``eps~_g = q_hat - grad
+    p~``, ``dV/dt`` for ``V = 1/2 int (p - p_*)^2 / p_*`` keeps the paper's error term
+    with ``p~_*`` in place of ``p_*`` (weights bounded since ``p~_* >= min p_*``), but
+    the alpha dissipation becomes the cross form ``-alpha int p grad(p / p_*) .
+    grad(p~ / p~_*)``, which is not a square. If it is at least ``-(1 - c) sigma int
+    p_* |grad(p / p_*)|^2`` for some ``c in (0, 1]`` (condition (C)), the paper's proof
+    goes through with ``alpha_1 + alpha_2`` replaced by ``c alpha_2``: ISS w.r.t.
+    ``||eps~||``, ``||eps~_g||`` with a larger gain and a guaranteed rate ``c sigma
+    lambda`` instead of ``(alpha + sigma) lambda``. (C) holds with ``c = 1`` near a
+    uniform target; for the default target the linearised certificate gives ``c =
+    0.063`` at the paper's gains (``docs/debias.md``, ``python -m
+    benchmarks.debias_check --certificate``). What the debiased law gives up is the
+    guarantee on modes below the kernel's scale, which the KDE cannot see anyway.
+
     Args:
         target: The target on the grid (run-time argument).
         alpha: Feedback gain ``>= 0`` (length^4 / s).
         sigma: The robots' noise intensity ``>= 0`` (length^2 / s), for the drift term.
+        debias: Compare the estimates with ``K_h * p_*`` in the feedback term.
+        bandwidth: The KDE's bandwidth ``h`` (length), for ``debias``.
+        mirror: The KDE's wall images, for ``debias``.
     """
 
-    def __init__(self, target: Target, alpha: float, sigma: float) -> None:
+    def __init__(
+        self,
+        target: Target,
+        alpha: float,
+        sigma: float,
+        debias: bool = False,
+        bandwidth: float | None = None,
+        mirror: bool = True,
+    ) -> None:
         self.target = target
         self.alpha = number("alpha", alpha, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
+        self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
 
     def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The velocity by eq. ``modified density feedback law using estimates``."""
-        return paper_law(p_hat, q_hat, self.target, self.alpha, self.sigma)
+        return paper_law(p_hat, q_hat, self.target, self.alpha, self.sigma, self.feedback_target)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
-        """``alpha max(p0 / p_*)``: the feedback term is the nonlinear diffusion
-        ``div(alpha p grad(p / p_*))`` of local diffusivity ``alpha p / p_*``.
+        """``alpha max(p0 / p~_*)``: the feedback term is the nonlinear diffusion
+        ``div(alpha p grad(p / p~_*))`` of local diffusivity ``alpha p / p~_*``
+        (``p~_* = p_*`` without debiasing).
         """
-        return self.alpha * float(np.max(p0 / self.target.p))
+        return self.alpha * float(np.max(p0 / self.feedback_target.p))
+
+
+def _feedback_target(target: Target, debias: bool, bandwidth: float | None, mirror: bool) -> Target:
+    """``target``, or with ``debias`` the smoothed target ``K_h * p_*``."""
+    if not flag("debias", debias):
+        return target
+    h = number("bandwidth", bandwidth, 0.0, strict=True)
+    return smoothed_target(target, h, flag("mirror", mirror))
 
 
 class HeatControl:
@@ -214,6 +279,8 @@ class HeatControl:
         sigma: Noise intensity ``>= 0`` (length^2 / s).
         density_floor: ``c > 0`` (1 / length^2).
         noise_compensation: Include the ``sigma q_hat / p_hat`` term.
+        debias, bandwidth, mirror: As :class:`PaperControl` (``grad p~_*`` replaces
+            ``grad p_*`` in the feedback term).
     """
 
     def __init__(
@@ -223,12 +290,16 @@ class HeatControl:
         sigma: float,
         density_floor: float = 0.1,
         noise_compensation: bool = True,
+        debias: bool = False,
+        bandwidth: float | None = None,
+        mirror: bool = True,
     ) -> None:
         self.target = target
         self.alpha = number("alpha", alpha, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
         self.density_floor = number("density_floor", density_floor, 0.0, strict=True)
         self.noise_compensation = flag("noise_compensation", noise_compensation)
+        self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
 
     def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The heat-equation law of :func:`heat_law`."""
@@ -240,6 +311,7 @@ class HeatControl:
             self.sigma,
             density_floor=self.density_floor,
             noise_compensation=self.noise_compensation,
+            feedback_target=self.feedback_target,
         )
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:

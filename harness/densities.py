@@ -211,19 +211,27 @@ class Target:
             same operator as for the estimates makes ``v = 0`` exactly at
             ``p_hat = p_*``, ``q_hat = grad p_*`` (the exact estimator's values).
         log_p: ``log p_*``, used for the face drift ``sigma grad log p_*``.
+        density: The continuous density the target was put on the grid from (None for a
+            target given by cell values only, such as a smoothed one).
     """
 
     grid: Grid
     p: np.ndarray
     grad: np.ndarray
     log_p: np.ndarray
+    density: Density | None = None
 
     @classmethod
-    def from_density(cls, grid: Grid, density: Density) -> Target:
-        """Put ``density`` on ``grid``; it must be strictly positive there."""
-        p = density.on_grid(grid)
+    def from_values(cls, grid: Grid, p: np.ndarray) -> Target:
+        """A target given by its cell values ``p`` (strictly positive)."""
         if not (np.isfinite(p).all() and p.min() > 0):
             raise ValueError(
                 f"a target must be finite and strictly positive on the grid (min {p.min():.3g})"
             )
         return cls(grid=grid, p=p, grad=grid.gradient(p), log_p=np.log(p))
+
+    @classmethod
+    def from_density(cls, grid: Grid, density: Density) -> Target:
+        """Put ``density`` on ``grid``; it must be strictly positive there."""
+        on_grid = cls.from_values(grid, density.on_grid(grid))
+        return cls(grid, on_grid.p, on_grid.grad, on_grid.log_p, density)

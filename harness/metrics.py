@@ -1,13 +1,35 @@
 """The per-step metrics of a run (the ``/metrics`` topic of the log).
 
 All L2 norms are :meth:`harness.grid.Grid.l2`, ``(dx dy sum f^2)^(1/2)``.
+
+Two families. The field metrics (:func:`metrics`) compare the estimates and the plant's
+mean-field density ``p`` (the ``meanfield`` plant's state; the ``agents`` plant's
+deterministic ``N -> infinity`` limit ``p_inf``) with the target. The swarm metrics
+(:class:`SwarmTruth`) say where the robots are, independently of every estimator,
+and split the error at the agent level into estimation, finite-N and control parts:
+
+    swarm_l2        = ||K_h mu_N - K_h p_*||      where the robots are, against the target
+    est_swarm_l2    = ||p_hat - K_h mu_N||        the estimator, against what it estimates
+    limit_swarm_l2  = ||K_h mu_N - K_h p_inf||    finite-N noise: the swarm against its limit
+    limit_target_l2 = ||K_h p_inf - K_h p_*||     the control error of the limit loop
+
+(``swarm_l2 <= limit_swarm_l2 + limit_target_l2``), with ``mu_N`` the robots'
+empirical measure and ``K_h`` the KDE's kernel with its wall images; and ``swarm_w2``,
+an optimal-transport distance between the robots and ``p_*`` (length). The finite-N
+floor of ``swarm_l2`` and ``swarm_w2`` (N robots drawn independently from ``p_*``) is
+computed once per run (:meth:`SwarmTruth.floors`) and logged in the ``theory`` record.
 """
 
 from __future__ import annotations
 
+import numpy as np
+
 from harness.densities import Target
 from harness.grid import Grid
+from harness.kde import KDE
 from harness.records import StepRecord
+from harness.smoothing import Smoother, smoothed_target
+from harness.swarm_metrics import TargetMeasure, floors, swarm_w2, w2_method
 from harness.theory import lyapunov
 
 METRIC_KEYS = (
@@ -23,8 +45,16 @@ METRIC_KEYS = (
     "trace_Q",
     "trace_P_grad",
     "trace_Q_grad",
+    "swarm_l2",
+    "swarm_w2",
+    "est_swarm_l2",
+    "limit_swarm_l2",
+    "limit_target_l2",
 )
-"""The keys of :func:`metrics`, in log order."""
+"""The keys of :func:`metrics` and :class:`SwarmTruth`, in log order."""
+
+SWARM_KEYS = METRIC_KEYS[-5:]
+"""The swarm metrics (null between their steps and without robots)."""
 
 ALWAYS_NUMBERS = ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
 """Keys that are never null."""
@@ -57,3 +87,98 @@ def metrics(grid: Grid, target: Target, rec: StepRecord) -> dict[str, float | No
         "trace_P_grad": est.trace_P_grad,
         "trace_Q_grad": est.trace_Q_grad,
     }
+
+
+class SwarmTruth:
+    """The swarm metrics (see the module docstring), from robot positions.
+
+    ``K_h p_*`` for ``swarm_l2`` is exact where the target's density has a closed form
+    (:func:`harness.smoothing.smoothed_target`); ``K_h p_inf`` and, for a like-for-like
+    ``limit_target_l2``, ``K_h p_*`` there are the noise-free KDE of cell values
+    (:class:`harness.smoothing.Smoother`). ``K_h mu_N`` is the KDE of the positions with
+    the run's KDE settings, so ``swarm_l2`` of N robots drawn from ``p_*`` has the
+    finite-N floor of :meth:`floors`.
+
+    Args:
+        grid: The grid.
+        target: The target (its continuous density is sampled for the floors).
+        bandwidth, mirror, method: The KDE's settings (``kde.*``).
+        every: Steps between evaluations of ``swarm_l2`` and the decomposition.
+        w2_every: Steps between evaluations of ``swarm_w2`` (the transport is costlier).
+        total_steps: The run's last step (always evaluated).
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        target: Target,
+        bandwidth: float,
+        mirror: bool,
+        method: str,
+        every: int,
+        w2_every: int,
+        total_steps: int,
+    ) -> None:
+        self.grid, self.target = grid, target
+        self.every, self.w2_every, self.total_steps = every, w2_every, total_steps
+        self.kde = KDE(grid, bandwidth, mirror=mirror, method=method)
+        self.smoother = Smoother(grid, bandwidth, mirror)
+        self.smoothed_target = smoothed_target(target, bandwidth, mirror).p
+        self.smoothed_target_cells = self.smoother(target.p)[0]
+        self.measure = _target_measure(target, grid)
+
+    def __call__(self, rec: StepRecord) -> dict[str, float | None]:
+        """The swarm metrics of ``rec`` (all None without robots or off their steps)."""
+        out: dict[str, float | None] = dict.fromkeys(SWARM_KEYS)
+        last = rec.step == self.total_steps
+        if rec.positions is None or not (rec.step % self.every == 0 or last):
+            return out
+        g = self.grid
+        smooth_swarm, _ = self.kde(rec.positions)
+        smooth_limit = self.smoother(rec.p_true)[0]
+        out["swarm_l2"] = g.l2(smooth_swarm - self.smoothed_target)
+        out["est_swarm_l2"] = g.l2(rec.estimate.p_hat - smooth_swarm)
+        out["limit_swarm_l2"] = g.l2(smooth_swarm - smooth_limit)
+        out["limit_target_l2"] = g.l2(smooth_limit - self.smoothed_target_cells)
+        if rec.step % self.w2_every == 0 or last:
+            out["swarm_w2"] = swarm_w2(rec.positions, self.measure)
+        return out
+
+    def floors(self, n_robots: int, rng: np.random.Generator, draws: int) -> dict[str, str]:
+        """The finite-N floors of ``swarm_l2`` and ``swarm_w2`` for ``n_robots`` robots,
+        as string values for the ``theory`` record: mean, 2.5 and 97.5 percentiles and
+        the number of Monte-Carlo draws (:func:`harness.swarm_metrics.floors`), and the
+        transport method. Empty when the target has no continuous density to sample.
+        """
+        density = self.target.density
+        if density is None:
+            return {}
+        bands = floors(
+            density,
+            self.grid,
+            self.kde,
+            self.smoothed_target,
+            self.measure,
+            n_robots,
+            rng,
+            draws=draws,
+        )
+        out = {"swarm_w2_method": w2_method(n_robots)}
+        for name, band in bands.items():
+            for key, value in band.as_dict().items():
+                out[f"{name}_floor_{key}"] = repr(value)
+        return out
+
+
+def _target_measure(target: Target, grid: Grid) -> TargetMeasure:
+    """``p_*`` as cell masses at cell centres: exact masses where the density has a
+    closed form (:meth:`TargetMeasure.from_density`), else cell values times cell area.
+    """
+    if target.density is not None:
+        try:
+            return TargetMeasure.from_density(target.density, grid)
+        except TypeError:  # no closed form for this density
+            pass
+    x, y = grid.mesh
+    weights = (target.p * grid.cell_area).ravel()
+    return TargetMeasure(np.column_stack([x.ravel(), y.ravel()]), weights / weights.sum())

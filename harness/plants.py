@@ -3,16 +3,20 @@ lets the estimator measure.
 
 * :class:`Agents` (``plant=agents``): ``N`` robots by eq. ``Langevin equation``
   (:class:`harness.agents.Swarm`), measured by their KDE (:class:`harness.kde.KDE`);
-  alongside, the mean-field reference ``p``: the Fokker-Planck density (eq. ``FP
-  equation``) under the same applied velocity, started from ``p_0``.
+  alongside, the loop's deterministic ``N -> infinity`` limit ``p_inf``: the
+  Fokker-Planck density (eq. ``FP equation``) started from ``p_0`` and moved by the
+  same control law fed the estimates a noise-free KDE of ``p_inf`` would give,
+  ``K_h * p_inf`` and its gradient (:class:`harness.smoothing.Smoother`).
 * :class:`MeanField` (``plant=meanfield``): no robots; the state is the Fokker-Planck
   density ``p`` and the measurement is ``p`` plus seeded Gaussian noise with the KDE's
   own variances ``k p`` and ``k_g p`` per cell (notes section 3), for the swarm size and
   bandwidth configured.
 
 Both implement :class:`harness.components.Plant` and share the run's
-:class:`~harness.fokker_planck.FokkerPlanck` model, so ``A(v)`` is assembled once per
-step for the plant and the filters.
+:class:`~harness.fokker_planck.FokkerPlanck` model. (Until issue 11 the agents plant
+carried the Fokker-Planck density under the *applied* velocity instead of ``p_inf``;
+that reference drifted away from the swarm, because the applied velocity is computed
+from the swarm's own fluctuations, and measured nothing an estimator does.)
 """
 
 from __future__ import annotations
@@ -21,30 +25,21 @@ import numpy as np
 import scipy.sparse as sp
 
 from harness.agents import Swarm
-from harness.components import Density, flag, integer, number, require
+from harness.components import Control, Density, flag, integer, number, require
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE, noise_constants
 from harness.records import Measurement
+from harness.smoothing import Smoother
 from harness.velocity import VelocityField
 
 
-class _MeanFieldDensity:
-    """The Fokker-Planck density both plants carry, started from ``p_0`` on the grid."""
-
-    def __init__(self, grid: Grid, model: FokkerPlanck, init: Density) -> None:
-        self.grid, self.model, self.init = grid, model, init
-        self.density = init.on_grid(grid)
-
-    def _advance_density(self, v: VelocityField, a: sp.csr_matrix, dt: float) -> None:
-        self.density = self.model.step(self.density, v, dt, a)
-
-
-class Agents(_MeanFieldDensity):
-    """``N`` robots measured by their KDE, with the mean-field reference alongside.
+class Agents:
+    """``N`` robots measured by their KDE, with the loop's ``N -> infinity`` limit.
 
     Args:
-        grid, model, init: Run-time arguments (grid, Fokker-Planck model, ``p_0``).
+        grid, model, init, control: Run-time arguments (grid, Fokker-Planck model,
+            ``p_0``, the control law).
         n: Number of robots ``N >= 1``.
         bandwidth: KDE bandwidth ``h > 0`` (length), at most the domain side.
         mirror: Wall images in the KDE.
@@ -56,18 +51,21 @@ class Agents(_MeanFieldDensity):
         grid: Grid,
         model: FokkerPlanck,
         init: Density,
+        control: Control,
         n: int,
         bandwidth: float,
         mirror: bool = True,
         method: str = "auto",
     ) -> None:
-        super().__init__(grid, model, init)
+        self.grid, self.model, self.init, self.control = grid, model, init, control
+        self.density = init.on_grid(grid)
         self.n = integer("n", n, 1)
         h = number("bandwidth", bandwidth, 0.0, strict=True)
         side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
         require(h <= side, "bandwidth", bandwidth, f"at most the domain side {side:g}")
         require(method in KDE.METHODS, "method", method, f"one of {', '.join(KDE.METHODS)}")
         self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method)
+        self.smoother = Smoother(grid, h, mirror)
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
 
@@ -83,10 +81,13 @@ class Agents(_MeanFieldDensity):
     def advance(
         self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
     ) -> None:
-        """Robots by Euler-Maruyama with reflection, then the mean-field reference."""
+        """Robots by Euler-Maruyama with reflection under ``v``; the limit ``p_inf``
+        under the law of its own noise-free KDE (held over the step, like ``v``).
+        """
         assert self.swarm is not None, "call start first"
         self.swarm.step(v, dt, rng)
-        self._advance_density(v, a, dt)
+        v_inf = self.control(*self.smoother(self.density))
+        self.density = self.model.step(self.density, v_inf, dt)
 
     def measure(self, rng: np.random.Generator) -> Measurement:
         """The KDE of the robots and its analytic gradient."""
@@ -94,11 +95,12 @@ class Agents(_MeanFieldDensity):
         return Measurement(*self.kde(self.swarm.positions))
 
 
-class MeanField(_MeanFieldDensity):
+class MeanField:
     """The mean-field density, measured with KDE-like noise (no robots).
 
     Args:
-        grid, model, init: Run-time arguments.
+        grid, model, init, control: Run-time arguments (``control`` is not used: the
+            density moves under the applied velocity).
         robots: Swarm size ``N >= 1`` whose KDE noise is imitated.
         bandwidth: KDE bandwidth ``h > 0`` (length) whose noise is imitated.
     """
@@ -107,9 +109,16 @@ class MeanField(_MeanFieldDensity):
     resolution = None  # white noise per cell: grid resolution
 
     def __init__(
-        self, grid: Grid, model: FokkerPlanck, init: Density, robots: int, bandwidth: float
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        init: Density,
+        control: Control,
+        robots: int,
+        bandwidth: float,
     ) -> None:
-        super().__init__(grid, model, init)
+        self.grid, self.model = grid, model
+        self.density = init.on_grid(grid)
         self.robots = integer("robots", robots, 1)
         self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
         self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
@@ -120,8 +129,8 @@ class MeanField(_MeanFieldDensity):
     def advance(
         self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
     ) -> None:
-        """The backward-Euler Fokker-Planck step."""
-        self._advance_density(v, a, dt)
+        """The backward-Euler Fokker-Planck step under ``v``."""
+        self.density = self.model.step(self.density, v, dt, a)
 
     def measure(self, rng: np.random.Generator) -> Measurement:
         """``p + sqrt(k p) xi`` and ``G p + sqrt(k_g p) xi_g``, ``xi`` standard normal."""

@@ -26,13 +26,14 @@ from omegaconf import DictConfig, OmegaConf
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from harness.build import build
+from harness.build import Experiment, build
 from harness.checks import ConfigError
 from harness.fokker_planck import NumericalError
 from harness.live import LiveServer, LiveServerError
 from harness.loop import ClosedLoop
 from harness.mcap_log import McapLogger
-from harness.metrics import metrics
+from harness.metrics import SwarmTruth, metrics
+from harness.records import StepRecord
 from harness.theory import poincare_constant
 
 PACKAGES = (
@@ -112,6 +113,16 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     rng = np.random.default_rng(cfg.seed)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
     target = parts.target
+    swarm = SwarmTruth(
+        parts.grid,
+        target,
+        cfg.kde.bandwidth,
+        cfg.kde.mirror,
+        cfg.kde.method,
+        cfg.log.positions_every,
+        cfg.log.w2_every,
+        steps,
+    )
     loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, cfg.sim.dt, rng)
     logger = McapLogger(
         out_dir / "run.mcap",
@@ -146,22 +157,17 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     t0 = time.perf_counter()
     try:
         with threadpool_limits(1):
-            lam = poincare_constant(loop.grid, target.p)
-            theory = {"poincare_lambda": repr(lam)}
-            alpha = getattr(parts.control, "alpha", None)
-            if isinstance(alpha, float):  # laws with a gain alpha: the exact-estimate rate
-                theory["rate_exact"] = repr((alpha + cfg.dynamics.sigma) * lam)
-            logger.add_metadata("theory", theory)
             logger.write_target(target.p)
             rec = loop.start()
-            last = metrics(loop.grid, target, rec)
+            logger.add_metadata("theory", theory(cfg, parts, swarm, rec))
+            last = metrics(loop.grid, target, rec) | swarm(rec)
             logger.handle(rec, last)
             for _ in range(steps):
                 if requested:
                     raise Terminated(f"received {signal.Signals(requested[0]).name}")
                 rec = loop.step()
                 done = rec.step
-                last = metrics(loop.grid, target, rec)
+                last = metrics(loop.grid, target, rec) | swarm(rec)
                 logger.handle(rec, last)
                 if done % 50 == 0 or done == steps:
                     bar.set_postfix_str(
@@ -187,6 +193,24 @@ def run(cfg: DictConfig, out_dir: Path) -> RunResult:
     return RunResult(
         state, reason, done, time.perf_counter() - t0, logger.path, last, logger.seconds
     )
+
+
+def theory(cfg: DictConfig, parts: Experiment, swarm: SwarmTruth, start: StepRecord) -> dict:
+    """The ``theory`` record: the ``p_*``-weighted Poincare constant ``lambda`` (1 /
+    length^2); for laws with a gain ``alpha``, the exact-estimate decay rate ``(alpha +
+    sigma) lambda`` (1 / s); with robots, the finite-N floors of the swarm metrics
+    (:meth:`harness.metrics.SwarmTruth.floors`, drawn from the stream ``[seed, 2]``,
+    apart from the run's own).
+    """
+    lam = poincare_constant(parts.grid, parts.target.p)
+    out = {"poincare_lambda": repr(lam)}
+    alpha = getattr(parts.control, "alpha", None)
+    if isinstance(alpha, float):
+        out["rate_exact"] = repr((alpha + cfg.dynamics.sigma) * lam)
+    if start.positions is not None:
+        rng = np.random.default_rng([cfg.seed, 2])
+        out |= swarm.floors(start.positions.shape[1], rng, cfg.log.floor_draws)
+    return out
 
 
 def start_live(cfg: DictConfig) -> LiveServer | None:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from harness.densities import Target
 from harness.grid import Grid
 from harness.kde import kernel_1d
 
@@ -61,3 +62,24 @@ def transfer(k: np.ndarray, bandwidth: float | None) -> np.ndarray:
     if bandwidth is None:
         return np.ones_like(k)
     return np.exp(-0.5 * (k * bandwidth) ** 2)
+
+
+def smoothed_target(target: Target, bandwidth: float, mirror: bool = True) -> Target:
+    """The target as the KDE sees it, ``p~_* = K_h * p_*``, with its grid gradient.
+
+    Exact (:func:`harness.swarm_metrics.smoothed_density`) when the target's continuous
+    density has a closed form; otherwise the noise-free KDE of its cell values
+    (:class:`Smoother`). ``p~_* >= min p_*`` (the mirrored kernel has unit mass on the
+    domain), so it is a valid target for the laws.
+    """
+    from harness.swarm_metrics import smoothed_density
+
+    values = None
+    if target.density is not None:
+        try:
+            values = smoothed_density(target.density, target.grid, bandwidth, mirror)
+        except TypeError:  # no closed form for this density
+            values = None
+    if values is None:
+        values = Smoother(target.grid, bandwidth, mirror)(target.p)[0]
+    return Target.from_values(target.grid, values)

@@ -70,7 +70,7 @@ from threadpoolctl import threadpool_limits
 
 from harness.densities import Box, Density, GaussianMixture, Uniform
 from harness.grid import Grid
-from harness.kde import KDE, _kernel_1d
+from harness.kde import KDE, kernel_1d
 
 EMD_MAX_ROBOTS = 4096
 """``swarm_w2`` uses the exact EMD up to this many robots and the sliced distance above
@@ -173,7 +173,7 @@ def smoothed_density_quadrature(
 
     ``(K_h * p)(c) = sum_a sum_b W_a W_b p(x_a, y_b) k_x(c_x, x_a) k_y(c_y, y_b)``
     over tensor Gauss-Legendre nodes (``order`` per panel, panels of width at most
-    ``panel``, default ``h / 2``), where ``k`` is :func:`harness.kde._kernel_1d`, the very
+    ``panel``, default ``h / 2``), where ``k`` is :func:`harness.kde.kernel_1d`, the very
     function the KDE evaluates (its 9 h image cutoff included). For a density that is
     smooth on the domain the error is far below 1e-10.
 
@@ -198,8 +198,8 @@ def smoothed_density_quadrature(
 
     xq, wx = nodes(grid.x0, grid.x1)
     yq, wy = nodes(grid.y0, grid.y1)
-    kx, _ = _kernel_1d(xq, grid.x, bandwidth, grid.x0, grid.x1, mirror)
-    ky, _ = _kernel_1d(yq, grid.y, bandwidth, grid.y0, grid.y1, mirror)
+    kx, _ = kernel_1d(xq, grid.x, bandwidth, grid.x0, grid.x1, mirror)
+    ky, _ = kernel_1d(yq, grid.y, bandwidth, grid.y0, grid.y1, mirror)
     xx, yy = np.meshgrid(xq, yq, indexing="xy")
     vals = density_fn(xx, yy) * np.outer(wy, wx)
     return ky.T @ vals @ kx
