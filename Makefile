@@ -55,7 +55,7 @@ reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write it
 	@echo "log: $(RUN_DIR)/run.mcap"
 	@echo "figures:"; ls -1 figures/* figures/meanfield/*
 
-STUDIES := iss_gain agents_n conv_grid conv_sigma conv_alpha
+STUDIES := iss_gain conv_grid conv_sigma conv_alpha agents_n debias_n conv_grid_agents
 
 sweeps: $(STAMP) ## Run every study preset (about 6 min on 2 cores) and write figures/sweeps/
 	@for s in $(STUDIES); do \

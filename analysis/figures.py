@@ -5,9 +5,11 @@
 * ``fig1_<run>.png/.pdf`` (paper's Fig. 1): rows swarm, ``p_hat`` and velocity field,
   columns four logged times (0, about T/10, T/3 and T).
 * ``fig2.png/.pdf`` (paper's Fig. 2): the target ``p_*`` and ``||p_hat - p_*||`` over
-  time on a log scale (every run overlaid; ``||p - p_*||`` of the mean-field truth
-  dashed; for runs with exact estimates also the theoretical rate ``(alpha + sigma)
-  lambda`` from the log's ``theory`` record, dotted).
+  time on a log scale (every run overlaid; ``||p - p_*||`` of the plant's mean-field
+  density dashed, the limit ``N -> infinity`` for robots; with robots also
+  ``swarm_l2`` = ``||K_h mu_N - K_h p_*||``, dash-dotted, and its finite-N floor as a
+  95 % band from the ``theory`` record; for runs with exact estimates the theoretical
+  rate ``(alpha + sigma) lambda``, dotted).
 * ``run_<run>.gif``: the swarm over ``p_*`` and ``p_hat`` through the run.
 """
 
@@ -99,14 +101,21 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
         (line,) = ax1.semilogy(
             m["t"], m["phat_target_l2"], label=rf"$\|\hat p - p_*\|$ {_name(run)}"
         )
+        robots = "swarm_l2" in m and np.isfinite(m["swarm_l2"]).any()
         ax1.semilogy(
             m["t"],
             m["phi_l2"],
             ls="--",
             lw=0.9,
             color=line.get_color(),
-            label=rf"$\|p - p_*\|$ (mean-field) {_name(run)}",
+            label=(
+                rf"$\|p_\infty - p_*\|$ (limit $N\to\infty$) {_name(run)}"
+                if robots
+                else rf"$\|p - p_*\|$ (mean-field) {_name(run)}"
+            ),
         )
+        if robots:
+            swarm_band(ax1, run, line.get_color())
         if _estimator(run) == "ExactEstimator" and "rate_exact" in run.metadata.get("theory", {}):
             # with exact estimates the theory gives the rate: draw it over the second half
             rate = float(run.metadata["theory"]["rate_exact"])
@@ -124,6 +133,30 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
     ax1.grid(True, which="both", alpha=0.3)
     ax1.legend(fontsize=7)
     return save_figure(fig, out, "fig2")
+
+
+def swarm_band(ax, run: RunLog, color: str) -> None:
+    """``swarm_l2`` (where the robots are, against ``K_h p_*``) and its finite-N floor:
+    the mean and 95 % band of the same distance for N robots drawn from ``p_*``.
+    """
+    m = run.metrics
+    ok = np.isfinite(m["swarm_l2"])
+    ax.semilogy(
+        m["t"][ok],
+        m["swarm_l2"][ok],
+        ls="-.",
+        lw=1.0,
+        color=color,
+        label=rf"$\|K_h\mu_N - K_h p_*\|$ (robots) {_name(run)}",
+    )
+    theory = run.metadata.get("theory", {})
+    try:
+        mean, lo, hi = (float(theory[f"swarm_l2_floor_{k}"]) for k in ("mean", "lo", "hi"))
+    except (KeyError, ValueError):
+        return
+    t = m["t"]
+    ax.fill_between([t[0], t[-1]], lo, hi, color=color, alpha=0.15, lw=0)
+    ax.axhline(mean, color=color, lw=0.6, ls=":", label=f"finite-N floor (95 % band) {_name(run)}")
 
 
 def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:

@@ -11,8 +11,13 @@ varies:
 * ``estimator.delta`` (ISS gain curve, ``iss_gain.png/.pdf``): the tail supremum of
   ``||Phi|| = ||p - p_*||`` against the supremum of ``||eps||``, one curve per control
   law (grouped by the logged ``control._target_``), with the fitted linear gain;
-* ``agents.n`` (``agents_n.png/.pdf``): tail means of ``||Phi||``, ``||p_hat - p_*||``
-  and ``||eps||`` against N;
+* ``agents.n`` and ``kde.debias`` (``debias_n.png/.pdf``): ``swarm_l2`` and ``swarm_w2``
+  with their finite-N floors against N, the paper's loop against the debiased loop, and
+  ``||p_hat - p_*||`` beside them;
+* ``agents.n`` (``agents_n.png/.pdf``): tail means of ``||p_hat - p_*||``, ``swarm_l2``
+  (with its floor) and the decomposition terms against N;
+* ``grid.n`` with robots (``conv_grid_agents.png/.pdf``): tail ``||p_hat - p_*||``,
+  ``swarm_l2`` and the decomposition terms against n, and the wall time per step;
 * otherwise (``convergence.png/.pdf``): ``||Phi||`` curves overlaid and the fitted
   exponential rates next to the theoretical ``(alpha + sigma) lambda``.
 
@@ -21,7 +26,18 @@ Statistics (the CSV's columns; norms in 1/length, rates in 1/s): ``phi_tail_mean
 last ``tail`` fraction of the run; ``eps_sup``, ``eps_g_sup`` over the whole run;
 ``rate_fit``, the least-squares slope of ``-log ||Phi||`` over the second half of the
 run; ``rate_theory`` from the log's ``theory`` record; ``wall_s`` (s) from its ``status``
-record.
+record. Swarm statistics (1/length, ``swarm_w2`` in length; empty without robots):
+``swarm_tail_mean``, ``est_swarm_tail_mean``, ``limit_swarm_tail_mean``,
+``limit_target_tail_mean`` (tail means of the metrics of the same names without
+``_l2``), ``swarm_w2_last`` (the last evaluated ``swarm_w2``), the floors
+``swarm_floor_mean``/``_lo``/``_hi`` and ``swarm_w2_floor_mean``/``_lo``/``_hi`` from the
+``theory`` record, and ``swarm_ratio`` = ``swarm_tail_mean / swarm_floor_mean``;
+``ms_per_step``, the run's wall time per step (ms, from ``wall_s`` and the number of steps).
+
+Seeds. Rows that differ only in ``seed`` are one point: ``sweep_aggregated.csv`` has one
+row per point with, for every statistic ``s``, ``s_mean``, ``s_ci_low``, ``s_ci_high``
+(95 % Student-t confidence interval of the mean over the seeds) and ``s_n``, and
+``jobs``; the figures draw these means with their intervals as error bars.
 """
 
 from __future__ import annotations
@@ -43,6 +59,7 @@ import numpy as np
 from analysis.configs import component, flatten, logged_config
 from analysis.load import LogError, LogWarning, load_run
 from analysis.plotting import save_figure
+from analysis.stats import aggregate
 
 STATS = (
     "phi_tail_mean",
@@ -55,6 +72,19 @@ STATS = (
     "rate_fit",
     "rate_theory",
     "t_end",
+    "swarm_tail_mean",
+    "est_swarm_tail_mean",
+    "limit_swarm_tail_mean",
+    "limit_target_tail_mean",
+    "swarm_w2_last",
+    "swarm_floor_mean",
+    "swarm_floor_lo",
+    "swarm_floor_hi",
+    "swarm_w2_floor_mean",
+    "swarm_w2_floor_lo",
+    "swarm_w2_floor_hi",
+    "swarm_ratio",
+    "ms_per_step",
 )
 
 
@@ -86,9 +116,35 @@ def job_stats(run, tail: float) -> dict[str, float]:
         "eps_sup": float(np.nanmax(m["eps_l2"])),
         "eps_g_sup": float(np.nanmax(m["eps_g_l2"])),
         "rate_fit": decay_rate(t, m["phi_l2"]),
-        "rate_theory": float(theory.get("rate_exact", "nan")),
+        "rate_theory": _float(theory.get("rate_exact")),
         "t_end": float(t[-1]),
+        **swarm_stats(run, last),
     }
+
+
+def swarm_stats(run, last: np.ndarray) -> dict[str, float]:
+    """The swarm statistics of one run (NaN without robots)."""
+    m, theory = run.metrics, run.metadata.get("theory", {})
+
+    def tail_mean(key: str) -> float:
+        values = m.get(key, np.array([]))[last] if key in m else np.array([])
+        values = values[np.isfinite(values)]
+        return float(values.mean()) if values.size else math.nan
+
+    w2 = m.get("swarm_w2", np.array([]))
+    w2 = w2[np.isfinite(w2)]
+    out = {
+        "swarm_tail_mean": tail_mean("swarm_l2"),
+        "est_swarm_tail_mean": tail_mean("est_swarm_l2"),
+        "limit_swarm_tail_mean": tail_mean("limit_swarm_l2"),
+        "limit_target_tail_mean": tail_mean("limit_target_l2"),
+        "swarm_w2_last": float(w2[-1]) if w2.size else math.nan,
+    }
+    for name, key in (("swarm_floor", "swarm_l2_floor"), ("swarm_w2_floor", "swarm_w2_floor")):
+        for part in ("mean", "lo", "hi"):
+            out[f"{name}_{part}"] = _float(theory.get(f"{key}_{part}"))
+    out["swarm_ratio"] = out["swarm_tail_mean"] / out["swarm_floor_mean"]
+    return out
 
 
 def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], dict[str, Any]]:
@@ -117,6 +173,8 @@ def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], 
         row["wall_s"] = _float(run.metadata.get("status", {}).get("wall_s"))
         if "t" in run.metrics and len(run.metrics["t"]) > 2:
             row.update(job_stats(run, tail))
+            steps = len(run.metrics["t"]) - 1
+            row["ms_per_step"] = 1e3 * row["wall_s"] / steps
             series[job_dir.name] = run.metrics
         rows.append(row)
     return rows, series
@@ -204,23 +262,139 @@ def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
 
 
 def agents_figure(rows, out: Path) -> list[Path]:
-    """Tail errors against the number of robots."""
-    rows = sorted((r for r in rows if "phi_tail_mean" in r), key=lambda r: value(r, "agents.n"))
-    n = np.array([int(value(r, "agents.n")) for r in rows])
-    fig, ax = plt.subplots(figsize=(6, 4.5), constrained_layout=True)
-    for key, label in (
-        ("phi_tail_mean", r"$\|p - p_*\|$ (mean-field)"),
+    """Tail errors against the number of robots: means over the seeds with 95 % CIs."""
+    agg = sorted(points(rows), key=lambda a: a["agents.n"])
+    n = np.array([a["agents.n"] for a in agg], dtype=float)
+    fig, ax = plt.subplots(figsize=(6.5, 4.8), constrained_layout=True)
+    for stat, label in (
         ("phat_tail_mean", r"$\|\hat p - p_*\|$"),
-        ("eps_tail_mean", r"$\|\hat p - p\|$"),
+        ("swarm_tail_mean", r"$\|K_h\mu_N - K_h p_*\|$ (robots)"),
+        ("est_swarm_tail_mean", r"$\|\hat p - K_h\mu_N\|$ (estimator)"),
+        ("limit_swarm_tail_mean", r"$\|K_h\mu_N - K_h p_\infty\|$ (finite N)"),
+        ("limit_target_tail_mean", r"$\|K_h p_\infty - K_h p_*\|$ (limit loop)"),
     ):
-        ax.loglog(n, [r[key] for r in rows], "o-", label=label)
-    ax.loglog(n, rows[0]["phat_tail_mean"] * np.sqrt(n[0] / n), "k:", label=r"$\propto N^{-1/2}$")
+        _errorbar(ax, n, agg, stat, label=label)
+    _band(ax, n, agg, "swarm_floor", "0.4", "floor: N robots drawn from $p_*$")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
     ax.set_xlabel("robots N")
     ax.set_ylabel("tail mean (1/length)")
-    ax.set_title("tracking and estimation errors against swarm size")
+    ax.set_title("errors against swarm size (mean over seeds, 95 % CI)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     return save_figure(fig, out, "agents_n")
+
+
+def points(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per point (the varied config keys but ``seed``): mean and 95 % CI of
+    every statistic over the seeds (:func:`analysis.stats.aggregate`).
+    """
+    keys = [k for k in varied(rows) if k != "seed"]
+    flat = [{**{k: value(r, k) for k in keys}, "law": r.get("law", ""), **r} for r in rows]
+    done = [r for r in flat if r.get("state") == "completed"]
+    return aggregate(done, [*keys, "law"], [*STATS, "wall_s"])
+
+
+def write_points(agg: list[dict[str, Any]], path: Path) -> None:
+    """``sweep_aggregated.csv``."""
+    if not agg:
+        return
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(agg[0]))
+        writer.writeheader()
+        writer.writerows(agg)
+
+
+def _errorbar(ax, x, agg, stat: str, **kwargs) -> None:
+    """Means of ``stat`` with their 95 % intervals as error bars (log-log)."""
+    mean = np.array([a[f"{stat}_mean"] for a in agg], dtype=float)
+    low = np.array([a[f"{stat}_ci_low"] for a in agg], dtype=float)
+    high = np.array([a[f"{stat}_ci_high"] for a in agg], dtype=float)
+    err = np.vstack(
+        [
+            mean - np.where(np.isfinite(low), low, mean),
+            np.where(np.isfinite(high), high, mean) - mean,
+        ]
+    )
+    ax.errorbar(x, mean, yerr=np.clip(err, 0, None), capsize=3, marker="o", **kwargs)
+
+
+def _band(ax, x, agg, stat: str, color: str, label: str) -> None:
+    """A statistic's floor: mean line and the 95 % band of N independent robots."""
+    mean = np.array([a[f"{stat}_mean_mean"] for a in agg], dtype=float)
+    lo = np.array([a[f"{stat}_lo_mean"] for a in agg], dtype=float)
+    hi = np.array([a[f"{stat}_hi_mean"] for a in agg], dtype=float)
+    ax.fill_between(x, lo, hi, color=color, alpha=0.15, lw=0)
+    ax.plot(x, mean, ":", color=color, label=label)
+
+
+def debias_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
+    """``swarm_l2``, ``swarm_w2`` (with floors) and ``||p_hat - p_*||`` against N, for
+    the paper's loop and the debiased loop, means over the seeds with 95 % CIs.
+    """
+    agg = points(rows)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.4), constrained_layout=True)
+    colors = {False: "C3", True: "C0"}
+    for debias in (False, True):
+        group = sorted(
+            (a for a in agg if bool(a.get("kde.debias")) is debias), key=lambda a: a["agents.n"]
+        )
+        if not group:
+            continue
+        n = np.array([a["agents.n"] for a in group], dtype=float)
+        name = "debiased" if debias else "paper"
+        c = colors[debias]
+        _errorbar(axes[0], n, group, "swarm_tail_mean", color=c, label=f"{name} loop")
+        if not debias:
+            _band(axes[0], n, group, "swarm_floor", "0.4", "floor: N robots drawn from $p_*$")
+            _band(axes[1], n, group, "swarm_w2_floor", "0.4", "floor: N robots drawn from $p_*$")
+        _errorbar(axes[1], n, group, "swarm_w2_last", color=c, label=f"{name} loop")
+        _errorbar(axes[2], n, group, "phat_tail_mean", color=c, label=f"{name} loop")
+    titles = (
+        r"where the robots are: $\|K_h\mu_N - K_h p_*\|$",
+        r"transport distance $W_2(\mu_N, p_*)$",
+        r"the paper's Fig. 2 quantity $\|\hat p - p_*\|$",
+    )
+    units = ("1/length", "length", "1/length")
+    for ax, title, unit in zip(axes, titles, units, strict=True):
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("robots N")
+        ax.set_ylabel(f"tail mean ({unit})")
+        ax.set_title(title, fontsize=10)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    return save_figure(fig, out, "debias_n")
+
+
+def grid_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
+    """Agent loop against grid size: tail errors and wall time per step, means over the
+    seeds with 95 % CIs.
+    """
+    agg = sorted(points(rows), key=lambda a: a["grid.n"])
+    n = np.array([a["grid.n"] for a in agg], dtype=float)
+    fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11.5, 4.4), constrained_layout=True)
+    for stat, label in (
+        ("phat_tail_mean", r"$\|\hat p - p_*\|$"),
+        ("swarm_tail_mean", r"$\|K_h\mu_N - K_h p_*\|$ (robots)"),
+        ("est_swarm_tail_mean", r"$\|\hat p - K_h\mu_N\|$ (estimator)"),
+        ("limit_target_tail_mean", r"$\|K_h p_\infty - K_h p_*\|$ (limit loop)"),
+    ):
+        _errorbar(ax0, n, agg, stat, label=label)
+    _band(ax0, n, agg, "swarm_floor", "0.4", "floor: N robots drawn from $p_*$")
+    ax0.set_yscale("log")
+    ax0.set_ylabel("tail mean (1/length)")
+    ax0.set_title("tail errors against grid size")
+    _errorbar(ax1, n, agg, "ms_per_step", color="k", label="wall time per step")
+    ax1.set_yscale("log")
+    ax1.set_ylabel("ms per step")
+    ax1.set_title("cost against grid size")
+    for ax in (ax0, ax1):
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("cells per side n")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    return save_figure(fig, out, "conv_grid_agents")
 
 
 def _label(row: dict[str, Any], key: str) -> str:
@@ -272,7 +446,8 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or args.sweep_dir / "analysis"
     out.mkdir(parents=True, exist_ok=True)
     write_csv(rows, out / "sweep.csv")
-    written = [out / "sweep.csv"]
+    write_points(points(rows), out / "sweep_aggregated.csv")
+    written = [out / "sweep.csv", out / "sweep_aggregated.csv"]
     keys = varied(rows)
     usable = [r for r in rows if "phi_tail_sup" in r]
     if usable and "estimator.delta" in keys:
@@ -280,8 +455,23 @@ def main(argv: list[str] | None = None) -> int:
         written += paths
         for law, g in gains.items():
             print(f"fitted ISS gain ({law}): {g:.4g} (tail sup ||Phi|| per unit sup ||eps||)")
+    elif usable and "agents.n" in keys and "kde.debias" in keys:
+        written += debias_figure(usable, out)
+        for a in sorted(points(usable), key=lambda a: (a["kde.debias"], a["agents.n"])):
+            print(
+                f"N = {a['agents.n']}, debias = {a['kde.debias']}: swarm_l2 / floor = "
+                f"{a['swarm_ratio_mean']:.3g} (95 % CI {a['swarm_ratio_ci_low']:.3g} to "
+                f"{a['swarm_ratio_ci_high']:.3g}, {a['jobs']} seeds)"
+            )
     elif usable and "agents.n" in keys:
         written += agents_figure(usable, out)
+    elif usable and "grid.n" in keys and any(np.isfinite(r["swarm_tail_mean"]) for r in usable):
+        written += grid_figure(usable, out)
+        for a in sorted(points(usable), key=lambda a: a["grid.n"]):
+            print(
+                f"n = {a['grid.n']}: ||p_hat - p*|| tail {a['phat_tail_mean_mean']:.4g} "
+                f"1/length, {a['ms_per_step_mean']:.3g} ms per step ({a['jobs']} seeds)"
+            )
     elif usable:
         written += convergence_figure(usable, series, keys, out)
         for r in usable:
