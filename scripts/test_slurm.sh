@@ -12,7 +12,7 @@
 #
 # A real cluster needs only the launcher overrides (see conf/hydra/launcher/slurm.yaml):
 # hydra.launcher.partition=<partition>, and where the site asks for them
-# +hydra.launcher.additional_parameters.account=<account>, hydra.launcher.timeout_min=<min>.
+# hydra.launcher.account=<account>, hydra.launcher.timeout_min=<min>.
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
