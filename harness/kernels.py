@@ -12,8 +12,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(cache=True, fastmath=False, nogil=True, parallel=True)
-def euler_maruyama_step(
+def _euler_maruyama_step(
     pos: np.ndarray,
     vc: np.ndarray,
     noise: np.ndarray,
@@ -63,6 +62,35 @@ def euler_maruyama_step(
             py = 2.0 * y1 - py
         pos[0, k] = min(max(px, x0), x1)
         pos[1, k] = min(max(py, y0), y1)
+
+
+PARALLEL_MIN_ROBOTS = 1 << 15
+"""Fewer robots run the serial build of the same loop: a parallel region costs more
+than it saves on small swarms, and much more when the cores are oversubscribed."""
+
+_em_serial = numba.njit(cache=True, nogil=True)(_euler_maruyama_step)
+_em_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_euler_maruyama_step)
+
+
+def euler_maruyama_step(
+    pos: np.ndarray,
+    vc: np.ndarray,
+    noise: np.ndarray,
+    dt: float,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    nx: int,
+    ny: int,
+    scale: float = 1.0,
+) -> None:
+    """Compiled Euler-Maruyama step (see :func:`_euler_maruyama_step`), parallel from
+    ``PARALLEL_MIN_ROBOTS`` robots on; the serial and parallel builds run the same
+    per-robot arithmetic, so they give the same bits.
+    """
+    kernel = _em_parallel if pos.shape[1] >= PARALLEL_MIN_ROBOTS else _em_serial
+    kernel(pos, vc, noise, dt, x0, x1, y0, y1, nx, ny, scale)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -187,8 +215,7 @@ ROW_BLOCK = 512
 order, so the residual norm does not depend on the thread count."""
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
-def jacobi_series(
+def _jacobi_series(
     indptr: np.ndarray,
     indices: np.ndarray,
     data: np.ndarray,
@@ -257,3 +284,27 @@ def jacobi_series(
     for i in numba.prange(m):
         x[i] += r_old[i]
     return x, terms, res
+
+
+PARALLEL_MIN_CELLS = 1 << 16
+"""Fewer cells run the serial build of the Jacobi series (one parallel region per
+term costs more than it saves on small grids, and much more on a busy machine)."""
+
+_jacobi_serial = numba.njit(cache=True, nogil=True)(_jacobi_series)
+_jacobi_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_jacobi_series)
+
+
+def jacobi_series(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    dt: float,
+    rhs: np.ndarray,
+    tol: float,
+    max_iter: int,
+) -> tuple[np.ndarray, int, float]:
+    """Compiled Jacobi-split series (see :func:`_jacobi_series`), parallel from
+    ``PARALLEL_MIN_CELLS`` cells on; both builds give the same bits.
+    """
+    kernel = _jacobi_parallel if rhs.size >= PARALLEL_MIN_CELLS else _jacobi_serial
+    return kernel(indptr, indices, data, dt, rhs, tol, max_iter)

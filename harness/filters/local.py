@@ -55,7 +55,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from harness.filters.common import FilterSettings, MeasurementModel
+from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
 from harness.fokker_planck import FokkerPlanck, implicit_solve
 from harness.grid import Grid
 from harness.velocity import VelocityField
@@ -167,6 +167,7 @@ class LocalFilters:
         self.settings: FilterSettings = measurement.settings
         self.operator = FokkerPlanck(grid, sigma)
         self.poisson = WeightedPoisson(grid)
+        self.band = BandLimit(grid, self.settings.band_limit / measurement.bandwidth)
         self.x: np.ndarray | None = None  # p_hat, flattened
         self.d: np.ndarray | None = None  # density variances
         self.x_g: np.ndarray | None = None  # auxiliary density, q_hat = G x_g
@@ -183,13 +184,13 @@ class LocalFilters:
         """
         s, g = self.settings, self.grid
         k, k_g = self.measurement.constants
-        self.x = np.array(p_kde, dtype=float).ravel()
+        self.x = self.band(np.array(p_kde, dtype=float).ravel())
         self.d = np.full(g.size, s.initial_variance * k)
         self.c_g = np.full(2 * g.size, 1.0 / (s.initial_variance * k_g))
         fit = self.poisson.solve(
             np.ones(2 * g.size), self.poisson.gt @ np.asarray(grad_kde).ravel()
         )
-        self.x_g = fit + 1.0 / g.area
+        self.x_g = self.band(fit) + 1.0 / g.area
         self.x_prior, self.x_g_prior = self.x.copy(), self.x_g.copy()
         self.d_prior, self.c_g_prior = self.d.copy(), self.c_g.copy()
         return self.estimates
@@ -225,12 +226,14 @@ class LocalFilters:
         # density update (diagonal, exact for the diagonal prior)
         r = self.measurement.density_variance(p_kde)
         self.d = 1.0 / (1.0 / d + 1.0 / r)
-        self.x = x + self.d / r * (np.asarray(p_kde).ravel() - x)
+        self.x = self.band(x + self.d / r * (np.asarray(p_kde).ravel() - x))
         # gradient update: information adds, mean by the weighted Poisson solve
         w_g = 1.0 / self.measurement.gradient_variance(p_kde)
         self.c_g = c_g + w_g
         innovation = np.asarray(grad_kde).ravel() - self.poisson.g @ x_g
-        self.x_g = x_g + self.poisson.solve(self.c_g, self.poisson.gt @ (w_g * innovation))
+        self.x_g = self.band(
+            x_g + self.poisson.solve(self.c_g, self.poisson.gt @ (w_g * innovation))
+        )
         return self.estimates
 
     @property
