@@ -177,7 +177,12 @@ def linear_binning(
     """Linear-binning weights (compiled, parallel over fixed chunks); the numpy
     reference is :meth:`harness.kde.KDE.bin_weights`.
     """
-    chunk = bin_chunk_size(pos.shape[1], (bx + 1) * (by + 1))
+    n = pos.shape[1]
+    chunk = bin_chunk_size(n, (bx + 1) * (by + 1))
+    if n <= chunk:  # one chunk: the serial loop, no parallel region
+        out = np.zeros((by + 1, bx + 1))
+        _bin_range(pos, 0, n, out, x0, x1, y0, y1, bx, by, 1.0 / n)
+        return out
     return linear_binning_chunked(pos, x0, x1, y0, y1, bx, by, chunk)
 
 

@@ -77,3 +77,20 @@ def test_fast_filters_track_reference_at_paper_grid():
     c = compare_filters(n=30, steps=300, seed=0)
     worst_p, worst_q = c.ratios(skip=1)
     assert worst_p < 0.1 and worst_q < 0.1, (worst_p, worst_q)
+
+
+def test_weighted_poisson_fast_transform_preconditioner(rng):
+    """The DCT-preconditioned path (grids above lu_max_cells) solves the same
+    normal equations as a dense least-squares fit."""
+    g = Grid(24, 20, 0.0, 1.0, 0.0, 0.8)
+    solver = WeightedPoisson(g, lu_max_cells=0)
+    gm = g.gradient_matrix.toarray()
+    x, y = g.mesh
+    for rough in (0.0, 1.0):
+        smooth = 1.0 + 0.8 * np.sin(3 * x) * np.cos(2 * y)
+        c = np.concatenate([smooth, smooth]).ravel() * (1 + rough * rng.uniform(0, 4, 2 * g.size))
+        z = rng.normal(size=2 * g.size)
+        delta = solver.solve(c, gm.T @ (c * z))
+        expected = np.linalg.lstsq(np.sqrt(c)[:, None] * gm, np.sqrt(c) * z, rcond=None)[0]
+        expected -= expected.mean()
+        np.testing.assert_allclose(delta, expected, atol=1e-8 * np.abs(expected).max())
