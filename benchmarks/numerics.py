@@ -29,6 +29,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -41,6 +42,7 @@ from harness.filters.local import LocalFilters
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE
+from harness.velocity import VelocityField
 
 
 def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
@@ -67,7 +69,7 @@ def line(name: str, value: float, unit: str, target: float | None, lower_is_bett
     return ok
 
 
-def mid_run(g: Grid) -> tuple[np.ndarray, object]:
+def mid_run(g: Grid) -> tuple[np.ndarray, VelocityField]:
     """Density halfway between a KDE of the initial box and ``p_*`` and the paper's
     velocity for it (alpha = 0.003, sigma = 5e-5)."""
     target = Target.from_density(g, DEFAULT_TARGET)
@@ -85,10 +87,10 @@ def bench_fokker_planck(quick: bool) -> bool:
         p, v = mid_run(g)
         op = FokkerPlanck(g, 5e-5)
         repeats = 10 if quick else 40
-        t_step = median_ms(lambda op=op, p=p, v=v: op.step(p, v, 0.01), repeats)
+        t_step = median_ms(partial(op.step, p, v, 0.01), repeats)
         ok &= line(f"n = {n}: step", t_step, "ms", target_ms, True)
         if n >= 128:
-            t_lu = median_ms(lambda op=op, p=p, v=v: op.step_lu(p, v, 0.01), 3)
+            t_lu = median_ms(partial(op.step_lu, p, v, 0.01), 3)
             line(f"n = {n}: sparse-LU reference step", t_lu, "ms", None, True)
     return ok
 

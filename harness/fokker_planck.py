@@ -363,8 +363,13 @@ def implicit_solve(a: sp.csr_matrix, dt: float, rhs: np.ndarray) -> np.ndarray:
         return total
     a = a.tocsr()
     cols = [rhs] if rhs.ndim == 1 else [rhs[:, c] for c in range(rhs.shape[1])]
-    solved = [jacobi_solve(a, dt, col) for col in cols]
-    if all(x is not None for x in solved):
+    solved: list[np.ndarray] = []
+    for col in cols:
+        x = jacobi_solve(a, dt, col)
+        if x is None:
+            break
+        solved.append(x)
+    else:
         return solved[0] if rhs.ndim == 1 else np.column_stack(solved)
     system = (sp.identity(a.shape[0], format="csr") - dt * a).tocsc()
     return spla.splu(system).solve(rhs)

@@ -272,8 +272,8 @@ class ReferenceGradientFilter(_DenseGridFilter):
         assert self.kf is not None, "call initialize first"
         r = self.measurement.gradient_variance(p_kde)
         if self.engine == "filterpy":
-            fg, u = self.transition(v_applied)
-            fg, q, y, r, u = self._project_model(fg, grad_kde, r, u)
+            fg, u0 = self.transition(v_applied)
+            fg, q, y, r, u = self._project_model(fg, grad_kde, r, u0)
             self.kf.predict(fg, q, u)
         else:
             # Same equations, grouped to avoid forming F_g: with Z = G^+ P G^+T,
