@@ -8,8 +8,16 @@ use and cached on disk next to this file.
 
 from __future__ import annotations
 
-import numba
-import numpy as np
+import os
+
+# Idle OpenMP workers sleep instead of spinning (unless the user chose otherwise):
+# on a machine shared with other jobs (sweeps run one job per core) spinning
+# workers steal the cores the next parallel region waits for, and a kernel of
+# a few ms took hundreds. Read when numba first starts its OpenMP layer.
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
 
 
 def _euler_maruyama_step(
