@@ -16,8 +16,8 @@ import os
 # a few ms took hundreds. Read when numba first starts its OpenMP layer.
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-import numba  # noqa: E402
-import numpy as np  # noqa: E402
+import numba
+import numpy as np
 
 
 def _euler_maruyama_step(
