@@ -16,10 +16,21 @@ law when one step crosses at most one wall; a final clip guards against steps
 longer than the domain). Positions are stored as an array of shape ``(2, N)``
 (row 0: x, row 1: y), in length units. All randomness comes from the
 ``numpy.random.Generator`` passed in.
+
+Parallelism. The compiled step runs the robots in parallel (numba ``prange``); each
+robot's arithmetic does not depend on the thread count. The Gaussian increments are
+drawn by numpy outside it: for fewer than ``PARALLEL_DRAW_MIN`` values in one call
+of ``rng.standard_normal`` (the stream of the serial harness); above, in fixed
+chunks of ``DRAW_CHUNK`` values, chunk ``c`` from the ``c``-th child of
+``rng.spawn`` (independent streams, numpy's own construction), filled by a thread
+pool. Which numbers land where is fixed by ``N`` and ``rng``, never by the number
+of threads.
 """
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,6 +38,44 @@ import numpy as np
 from harness.grid import Grid
 from harness.kernels import euler_maruyama_step
 from harness.velocity import VelocityField
+
+DRAW_CHUNK = 1 << 17
+"""Gaussian values drawn per child generator on the parallel path."""
+
+PARALLEL_DRAW_MIN = 1 << 18
+"""Fewest values (``2 N``) drawn on the parallel path; below, one serial draw."""
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
+    return _POOL
+
+
+def draw_normals(rng: np.random.Generator, out: np.ndarray) -> np.ndarray:
+    """Fill ``out`` with independent standard normal values from ``rng``.
+
+    Fewer than ``PARALLEL_DRAW_MIN`` values: ``rng.standard_normal(out=out)``.
+    Otherwise chunk ``c`` (values ``c DRAW_CHUNK`` onwards of the flattened ``out``)
+    comes from the ``c``-th generator of ``rng.spawn(chunks)``; numpy releases the
+    GIL while filling, so the chunks fill in parallel, and the values do not depend
+    on the number of threads.
+    """
+    flat = out.reshape(-1)
+    if flat.size < PARALLEL_DRAW_MIN:
+        rng.standard_normal(out=flat)
+        return out
+    chunks = (flat.size + DRAW_CHUNK - 1) // DRAW_CHUNK
+    children = rng.spawn(chunks)
+
+    def fill(c: int) -> None:
+        children[c].standard_normal(out=flat[c * DRAW_CHUNK : (c + 1) * DRAW_CHUNK])
+
+    list(_pool().map(fill, range(chunks)))
+    return out
 
 
 def interpolate(grid: Grid, centres: np.ndarray, positions: np.ndarray) -> np.ndarray:
@@ -101,23 +150,33 @@ class Swarm:
         """Advance every robot by one Euler-Maruyama step of length ``dt`` under
         ``v`` (eq. ``Langevin equation``) and return the new positions.
 
-        The Gaussian increments come from ``rng``; the interpolation, update and
-        reflection run in one compiled pass (:func:`harness.kernels.euler_maruyama_step`),
+        The Gaussian increments come from ``rng`` (:func:`draw_normals`); the
+        scaling by ``sqrt(2 sigma dt)``, interpolation, update and reflection run in
+        one compiled parallel pass (:func:`harness.kernels.euler_maruyama_step`),
         which :meth:`step_reference` states in plain numpy.
         """
         g = self.grid
-        rng.standard_normal(out=self._noise)
-        self._noise *= np.sqrt(2.0 * self.sigma * dt)
+        draw_normals(rng, self._noise)
         centres = np.ascontiguousarray(v.centres, dtype=float)
         euler_maruyama_step(
-            self.positions, centres, self._noise, float(dt), g.x0, g.x1, g.y0, g.y1, g.nx, g.ny
+            self.positions,
+            centres,
+            self._noise,
+            float(dt),
+            g.x0,
+            g.x1,
+            g.y0,
+            g.y1,
+            g.nx,
+            g.ny,
+            float(np.sqrt(2.0 * self.sigma * dt)),
         )
         return self.positions
 
     def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
         """Plain-numpy statement of :meth:`step` (same random draws, same result)."""
         g = self.grid
-        rng.standard_normal(out=self._noise)
+        draw_normals(rng, self._noise)
         self._noise *= np.sqrt(2.0 * self.sigma * dt)
         drift = interpolate(g, v.centres, self.positions)
         self.positions += drift * dt + self._noise

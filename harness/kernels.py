@@ -8,12 +8,19 @@ use and cached on disk next to this file.
 
 from __future__ import annotations
 
+import os
+
+# Idle OpenMP workers sleep instead of spinning (unless the user chose otherwise):
+# on a machine shared with other jobs (sweeps run one job per core) spinning
+# workers steal the cores the next parallel region waits for, and a kernel of
+# a few ms took hundreds. Read when numba first starts its OpenMP layer.
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
 import numba
 import numpy as np
 
 
-@numba.njit(cache=True, fastmath=False, nogil=True)
-def euler_maruyama_step(
+def _euler_maruyama_step(
     pos: np.ndarray,
     vc: np.ndarray,
     noise: np.ndarray,
@@ -24,16 +31,19 @@ def euler_maruyama_step(
     y1: float,
     nx: int,
     ny: int,
+    scale: float = 1.0,
 ) -> None:
-    """In place: ``pos += interp(vc, pos) dt + noise``, then reflect at the walls.
+    """In place: ``pos += interp(vc, pos) dt + scale noise``, then reflect at the walls.
 
     ``pos`` is ``(2, N)``, ``vc`` the cell-centre velocity ``(2, ny, nx)`` and
-    ``noise`` the already scaled Brownian increments ``(2, N)``.
+    ``noise`` the standard (``scale = 1``: already scaled) Gaussian increments
+    ``(2, N)``. Robots are independent and run in parallel (``prange``); each robot's
+    arithmetic is the same whatever the thread count, so the result is too.
     """
     dx = (x1 - x0) / nx
     dy = (y1 - y0) / ny
     n = pos.shape[1]
-    for k in range(n):
+    for k in numba.prange(n):
         px = pos[0, k]
         py = pos[1, k]
         u = min(max((px - x0) / dx - 0.5, 0.0), nx - 1.0)
@@ -48,8 +58,8 @@ def euler_maruyama_step(
         a = vc[1, j0, i0] + fx * (vc[1, j0, i0 + 1] - vc[1, j0, i0])
         b = vc[1, j0 + 1, i0] + fx * (vc[1, j0 + 1, i0 + 1] - vc[1, j0 + 1, i0])
         vy = a * (1.0 - fy) + b * fy
-        px = px + vx * dt + noise[0, k]
-        py = py + vy * dt + noise[1, k]
+        px = px + vx * dt + noise[0, k] * scale
+        py = py + vy * dt + noise[1, k] * scale
         if px < x0:
             px = 2.0 * x0 - px
         if px > x1:
@@ -62,19 +72,53 @@ def euler_maruyama_step(
         pos[1, k] = min(max(py, y0), y1)
 
 
-@numba.njit(cache=True, nogil=True)
-def linear_binning(
-    pos: np.ndarray, x0: float, x1: float, y0: float, y1: float, bx: int, by: int
-) -> np.ndarray:
-    """Linear-binning weights on the ``(by + 1, bx + 1)`` nodes, each robot adding
-    ``1/N`` split bilinearly over its four surrounding nodes.
+PARALLEL_MIN_ROBOTS = 1 << 15
+"""Fewer robots run the serial build of the same loop: a parallel region costs more
+than it saves on small swarms, and much more when the cores are oversubscribed."""
+
+_em_serial = numba.njit(cache=True, nogil=True)(_euler_maruyama_step)
+_em_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_euler_maruyama_step)
+
+
+def euler_maruyama_step(
+    pos: np.ndarray,
+    vc: np.ndarray,
+    noise: np.ndarray,
+    dt: float,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    nx: int,
+    ny: int,
+    scale: float = 1.0,
+) -> None:
+    """Compiled Euler-Maruyama step (see :func:`_euler_maruyama_step`), parallel from
+    ``PARALLEL_MIN_ROBOTS`` robots on; the serial and parallel builds run the same
+    per-robot arithmetic, so they give the same bits.
     """
-    out = np.zeros((by + 1, bx + 1))
-    n = pos.shape[1]
+    kernel = _em_parallel if pos.shape[1] >= PARALLEL_MIN_ROBOTS else _em_serial
+    kernel(pos, vc, noise, dt, x0, x1, y0, y1, nx, ny, scale)
+
+
+@numba.njit(cache=True, nogil=True)
+def _bin_range(
+    pos: np.ndarray,
+    start: int,
+    stop: int,
+    out: np.ndarray,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    bx: int,
+    by: int,
+    inv_n: float,
+) -> None:
+    """Add robots ``start .. stop - 1`` to ``out`` in order (see :func:`linear_binning`)."""
     sx = bx / (x1 - x0)
     sy = by / (y1 - y0)
-    inv_n = 1.0 / n
-    for k in range(n):
+    for k in range(start, stop):
         tx = (pos[0, k] - x0) * sx
         ty = (pos[1, k] - y0) * sy
         ix = min(max(int(tx), 0), bx - 1)
@@ -85,4 +129,195 @@ def linear_binning(
         out[iy, ix + 1] += fx * (1.0 - fy) * inv_n
         out[iy + 1, ix] += (1.0 - fx) * fy * inv_n
         out[iy + 1, ix + 1] += fx * fy * inv_n
+
+
+BIN_CHUNK_MIN = 1 << 15
+"""Fewest robots per binning chunk; chunks hold at least four times as many robots
+as there are nodes, so clearing a chunk's private grid costs less than filling it."""
+
+BIN_BATCH = 8
+"""Chunks binned at once (private grids alive at once), a constant so that the
+summation order never depends on the thread count."""
+
+
+def bin_chunk_size(n_robots: int, nodes: int) -> int:
+    """Robots per chunk of :func:`linear_binning`: a function of ``N`` and the node
+    count only (never of the thread count).
+    """
+    return max(BIN_CHUNK_MIN, 4 * nodes)
+
+
+@numba.njit(cache=True, nogil=True, parallel=True)
+def linear_binning_chunked(
+    pos: np.ndarray, x0: float, x1: float, y0: float, y1: float, bx: int, by: int, chunk: int
+) -> np.ndarray:
+    """Linear-binning weights on the ``(by + 1, bx + 1)`` nodes, each robot adding
+    ``1/N`` split bilinearly over its four surrounding nodes.
+
+    Robots are cut into consecutive chunks of ``chunk``; each chunk is summed in
+    robot order into a private grid (chunks of a batch of ``BIN_BATCH`` in
+    parallel), and the chunk grids are added to the result in chunk order. The
+    float sums are therefore fixed by ``N`` and ``chunk`` alone, not by the number
+    of threads; with one chunk (``N <= chunk``) the result is the plain serial sum.
+    """
+    n = pos.shape[1]
+    inv_n = 1.0 / n
+    out = np.zeros((by + 1, bx + 1))
+    n_chunks = (n + chunk - 1) // chunk
+    if n_chunks <= 1:
+        _bin_range(pos, 0, n, out, x0, x1, y0, y1, bx, by, inv_n)
+        return out
+    work = np.empty((min(BIN_BATCH, n_chunks), by + 1, bx + 1))
+    for first in range(0, n_chunks, BIN_BATCH):
+        count = min(BIN_BATCH, n_chunks - first)
+        for c in numba.prange(count):
+            work[c, :, :] = 0.0
+            start = (first + c) * chunk
+            _bin_range(pos, start, min(start + chunk, n), work[c], x0, x1, y0, y1, bx, by, inv_n)
+        for c in range(count):
+            out += work[c]
     return out
+
+
+def linear_binning(
+    pos: np.ndarray, x0: float, x1: float, y0: float, y1: float, bx: int, by: int
+) -> np.ndarray:
+    """Linear-binning weights (compiled, parallel over fixed chunks); the numpy
+    reference is :meth:`harness.kde.KDE.bin_weights`.
+    """
+    n = pos.shape[1]
+    chunk = bin_chunk_size(n, (bx + 1) * (by + 1))
+    if n <= chunk:  # one chunk: the serial loop, no parallel region
+        out = np.zeros((by + 1, bx + 1))
+        _bin_range(pos, 0, n, out, x0, x1, y0, y1, bx, by, 1.0 / n)
+        return out
+    return linear_binning_chunked(pos, x0, x1, y0, y1, bx, by, chunk)
+
+
+@numba.njit(cache=True, nogil=True)
+def assemble_faces(
+    a_l: np.ndarray, a_r: np.ndarray, slot: np.ndarray, diag_slot: np.ndarray, nnz: int
+) -> np.ndarray:
+    """CSR data of the finite-volume operator from its face rates (1 / time).
+
+    Face ``f`` between cells ``L`` and ``R`` adds ``-a_l`` to ``(L, L)``, ``a_r`` to
+    ``(L, R)``, ``a_l`` to ``(R, L)`` and ``-a_r`` to ``(R, R)``; ``slot`` holds the
+    CSR positions of those four entries for every face (four blocks of ``F``), and
+    ``diag_slot`` those of the diagonal. The additions run in the order of
+    ``np.bincount`` over the concatenation ``[-a_l, a_r, a_l, -a_r, 0]`` (the
+    reference in :meth:`harness.fokker_planck.FokkerPlanck.matrix_reference`), so the
+    result is the same bit for bit.
+    """
+    out = np.zeros(nnz)
+    nf = a_l.size
+    for f in range(nf):
+        out[slot[f]] += -a_l[f]
+    for f in range(nf):
+        out[slot[nf + f]] += a_r[f]
+    for f in range(nf):
+        out[slot[2 * nf + f]] += a_l[f]
+    for f in range(nf):
+        out[slot[3 * nf + f]] += -a_r[f]
+    for c in range(diag_slot.size):
+        out[diag_slot[c]] += 0.0
+    return out
+
+
+ROW_BLOCK = 512
+"""Rows per block of :func:`jacobi_series`: partial sums per block, added in block
+order, so the residual norm does not depend on the thread count."""
+
+
+def _jacobi_series(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    dt: float,
+    rhs: np.ndarray,
+    tol: float,
+    max_iter: int,
+) -> tuple[np.ndarray, int, float]:
+    """Solve ``(I - dt A) x = rhs`` by the Jacobi-split Neumann series, then add the
+    last residual (see :func:`harness.fokker_planck.jacobi_solve` for the maths).
+
+    ``A`` is given by its CSR arrays. With ``D = diag(1 - dt a_ii)`` and ``N = dt
+    (A - diag A)``: ``r_{-1} = rhs``, ``delta_k = D^{-1} r_{k-1}``, ``r_k = N delta_k``,
+    ``x_K = sum_{k <= K} delta_k``; the residual of ``x_K`` is exactly ``r_K``.
+    Stops at the first ``K`` with ``||r_K||_1 <= tol ||rhs||_1`` or after ``max_iter``
+    terms and returns ``(x_K + r_K, K + 1, ||r_K||_1 / ||rhs||_1)``. One parallel
+    pass over blocks of rows per term; every sum has a fixed order (rows in CSR
+    order, blocks in index order), so the result does not depend on the number of
+    threads.
+    """
+    m = rhs.size
+    diag = np.empty(m)
+    for i in numba.prange(m):
+        a_ii = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            if indices[jj] == i:
+                a_ii += data[jj]
+        diag[i] = 1.0 - dt * a_ii
+    # off-diagonal entries of N D^{-1}, zero on the diagonal
+    nd = np.empty(data.size)
+    for i in numba.prange(m):
+        for jj in range(indptr[i], indptr[i + 1]):
+            j = indices[jj]
+            nd[jj] = 0.0 if j == i else dt * data[jj] / diag[j]
+    norm_b = 0.0
+    for i in range(m):
+        norm_b += abs(rhs[i])
+    x = np.zeros(m)
+    if norm_b == 0.0:
+        return x, 0, 0.0
+    r_old = rhs.copy()
+    r_new = np.empty(m)
+    n_blocks = (m + ROW_BLOCK - 1) // ROW_BLOCK
+    partial = np.empty(n_blocks)
+    terms = 0
+    res = np.inf
+    while terms < max_iter:
+        terms += 1
+        for b in numba.prange(n_blocks):
+            acc = 0.0
+            for i in range(b * ROW_BLOCK, min((b + 1) * ROW_BLOCK, m)):
+                x[i] += r_old[i] / diag[i]
+                s = 0.0
+                for jj in range(indptr[i], indptr[i + 1]):
+                    s += nd[jj] * r_old[indices[jj]]
+                r_new[i] = s
+                acc += abs(s)
+            partial[b] = acc
+        res = 0.0
+        for b in range(n_blocks):
+            res += partial[b]
+        res /= norm_b
+        r_old, r_new = r_new, r_old
+        if res <= tol:
+            break
+    for i in numba.prange(m):
+        x[i] += r_old[i]
+    return x, terms, res
+
+
+PARALLEL_MIN_CELLS = 1 << 16
+"""Fewer cells run the serial build of the Jacobi series (one parallel region per
+term costs more than it saves on small grids, and much more on a busy machine)."""
+
+_jacobi_serial = numba.njit(cache=True, nogil=True)(_jacobi_series)
+_jacobi_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_jacobi_series)
+
+
+def jacobi_series(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    dt: float,
+    rhs: np.ndarray,
+    tol: float,
+    max_iter: int,
+) -> tuple[np.ndarray, int, float]:
+    """Compiled Jacobi-split series (see :func:`_jacobi_series`), parallel from
+    ``PARALLEL_MIN_CELLS`` cells on; both builds give the same bits.
+    """
+    kernel = _jacobi_parallel if rhs.size >= PARALLEL_MIN_CELLS else _jacobi_serial
+    return kernel(indptr, indices, data, dt, rhs, tol, max_iter)

@@ -113,3 +113,59 @@ def test_agents_match_fokker_planck_within_statistical_bound():
     assert distance <= np.sqrt(mean + 5 * sd) + b, (distance, np.sqrt(mean), b)
     # the bound is tight enough to matter: the initial density is far outside it
     assert g.l2(h - p0.on_grid(g)) > 3 * (np.sqrt(mean + 5 * sd) + b)
+
+
+def _with_threads(threads, fn):
+    import numba
+
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        return fn()
+    finally:
+        numba.set_num_threads(before)
+
+
+@pytest.mark.parametrize("n_robots", [1000, 300_000])
+def test_parallel_step_equals_reference_and_is_independent_of_thread_count(n_robots, rng):
+    """1 and 2 numba threads give the same bits; both equal the numpy reference to
+    round-off. 300 000 robots take the chunked parallel draw of the increments.
+    """
+    g = Grid.square(25)
+    v = VelocityField.from_centres(rng.normal(scale=0.3, size=(2, *g.shape)))
+    start = rng.uniform(0, 1, size=(2, n_robots))
+    results = []
+    for threads in (1, 2):
+        s = Swarm(g, start, 1e-3)
+        r = np.random.default_rng(5)
+        results.append(
+            _with_threads(threads, lambda s=s, r=r: [s.step(v, 0.05, r) for _ in range(3)])[
+                -1
+            ].copy()
+        )
+    assert np.array_equal(results[0], results[1])
+    ref = Swarm(g, start, 1e-3)
+    r = np.random.default_rng(5)
+    for _ in range(3):
+        ref.step_reference(v, 0.05, r)
+    np.testing.assert_allclose(results[0], ref.positions, atol=1e-14)
+
+
+def test_parallel_draw_gives_standard_normals():
+    from harness.agents import PARALLEL_DRAW_MIN, draw_normals
+
+    out = np.empty((2, PARALLEL_DRAW_MIN))
+    draw_normals(np.random.default_rng(9), out)
+    z = out.ravel()
+    n = z.size
+    # mean, variance and the fourth moment of N(0, 1), each within 5 standard errors
+    assert abs(z.mean()) < 5 / np.sqrt(n)
+    assert abs(z.var() - 1.0) < 5 * np.sqrt(2 / n)
+    assert abs(np.mean(z**4) - 3.0) < 5 * np.sqrt(96 / n)
+    # chunks are independent streams: no two chunks repeat each other
+    from harness.agents import DRAW_CHUNK
+
+    assert not np.array_equal(z[:DRAW_CHUNK], z[DRAW_CHUNK : 2 * DRAW_CHUNK])
+    # and the same generator state gives the same numbers
+    again = draw_normals(np.random.default_rng(9), np.empty_like(out))
+    assert np.array_equal(out, again)

@@ -1,12 +1,23 @@
 import numpy as np
 import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from harness import exact_solutions
 from harness.control import paper_law
 from harness.densities import Box, Target, Uniform
-from harness.fokker_planck import FokkerPlanck, NumericalError, bernoulli, rate
+from harness.fokker_planck import (
+    _MAX_SERIES_TERMS,
+    FokkerPlanck,
+    NumericalError,
+    _series_terms,
+    bernoulli,
+    implicit_solve,
+    jacobi_solve,
+    rate,
+)
 from harness.grid import Grid
 from harness.velocity import VelocityField
 
@@ -213,3 +224,111 @@ def test_box_start_is_stable_for_sweep_extremes():
         p = op.step(p, v, 0.05)
     assert np.isfinite(p).all() and p.min() >= 0
     assert g.integrate(p) == pytest.approx(1.0, rel=1e-12)
+
+
+# --- the Jacobi-split series (fast implicit step) against the sparse LU reference ---
+
+
+def _mid_run_velocity(g, rng):
+    """The paper's law (alpha = 0.003) halfway between a KDE of the initial box and p_*."""
+    from harness.densities import DEFAULT_TARGET
+    from harness.kde import KDE
+
+    target = Target.from_density(g, DEFAULT_TARGET)
+    y, _ = KDE(g, 0.04)(Box().sample(1024, g, rng))
+    p = 0.5 * (y + target.p)
+    return p, paper_law(p, g.gradient(p), target, 0.003, 5e-5)
+
+
+def test_matrix_equals_bincount_reference_bit_for_bit(rng):
+    g = Grid(40, 33, 0.0, 1.0, 0.0, 0.7)
+    op = FokkerPlanck(g, 5e-5)
+    v = random_velocity(g, rng, 0.3)
+    fast, ref = op.matrix(v), op.matrix_reference(v)
+    assert np.array_equal(fast.data, ref.data)
+    assert np.array_equal(fast.indices, ref.indices) and np.array_equal(fast.indptr, ref.indptr)
+
+
+@pytest.mark.parametrize("n", [128, 256])
+def test_jacobi_step_matches_sparse_lu_at_paper_settings(n, rng):
+    g = Grid.square(n)
+    op = FokkerPlanck(g, 5e-5)
+    p, v = _mid_run_velocity(g, rng)
+    a = op.matrix(v)
+    # the Jacobi path is the one taken here (the plain series would need > 12 terms)
+    assert _series_terms(0.01 * 2 * np.abs(a.diagonal()).max()) > _MAX_SERIES_TERMS
+    fast = op.step(p, v, 0.01)
+    ref = op.step_lu(p, v, 0.01)
+    assert np.abs(fast - ref).max() <= 1e-10 * np.abs(ref).max()
+    assert abs(g.integrate(fast) - g.integrate(p)) <= 1e-12 * g.integrate(p)
+    assert fast.min() >= 0.0
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.sampled_from([16, 64, 128]),
+    dt=st.sampled_from([0.01, 0.05, 0.2]),
+    sigma=st.sampled_from([0.0, 5e-5, 1e-3]),
+    scale=st.sampled_from([0.01, 0.1, 1.0]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_jacobi_solve_is_positive_mass_exact_and_matches_lu(n, dt, sigma, scale, seed):
+    rng = np.random.default_rng(seed)
+    g = Grid.square(n)
+    op = FokkerPlanck(g, sigma)
+    a = op.matrix(random_velocity(g, rng, scale))
+    p = random_density(g, rng).ravel()
+    # rhs with zeros too: positivity must hold where the density vanishes
+    p[rng.random(p.size) < 0.2] = 0.0
+    x = jacobi_solve(a, dt, p)
+    if x is None:  # more terms than the LU threshold: nothing to compare
+        return
+    ref = spla.splu((sp.identity(g.size, format="csc") - dt * a).tocsc()).solve(p)
+    assert np.abs(x - ref).max() <= 1e-10 * np.abs(ref).max()
+    assert abs(x.sum() - p.sum()) <= 1e-12 * p.sum()
+    assert x.min() >= 0.0
+
+
+def test_jacobi_solve_signed_rhs_and_columns_match_lu(rng):
+    g = Grid.square(64)
+    op = FokkerPlanck(g, 5e-5)
+    a = op.matrix(random_velocity(g, rng, 0.5))
+    rhs = rng.normal(size=(g.size, 2))
+    x = implicit_solve(a, 0.05, rhs)
+    ref = spla.splu((sp.identity(g.size, format="csc") - 0.05 * a).tocsc()).solve(rhs)
+    assert np.abs(x - ref).max() <= 1e-10 * np.abs(ref).max()
+    np.testing.assert_allclose(x.sum(axis=0), rhs.sum(axis=0), atol=1e-12 * np.abs(rhs).sum())
+
+
+def test_jacobi_series_does_not_depend_on_thread_count(rng):
+    """The parallel build with 1 and 2 threads and the serial build give the same bits."""
+    import numba
+
+    from harness.kernels import _jacobi_parallel, _jacobi_serial
+
+    g = Grid.square(128)
+    op = FokkerPlanck(g, 5e-5)
+    p, v = _mid_run_velocity(g, rng)
+    a = op.matrix(v)
+    args = (a.indptr, a.indices, a.data, 0.01, p.ravel(), 1e-15, 200)
+    before = numba.get_num_threads()
+    try:
+        results = []
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            results.append(_jacobi_parallel(*args)[0])
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(results[0], results[1])
+    assert np.array_equal(results[0], _jacobi_serial(*args)[0])
+
+
+def test_jacobi_solve_refuses_when_too_many_terms(rng):
+    g = Grid.square(64)
+    a = FokkerPlanck(g, 1e-2).matrix(random_velocity(g, rng, 1.0))
+    assert jacobi_solve(a, 10.0, Uniform().on_grid(g).ravel()) is None
+    # and the step falls back to the sparse LU solve
+    op = FokkerPlanck(g, 1e-2)
+    p = Uniform().on_grid(g)
+    v = random_velocity(g, rng, 1.0)
+    np.testing.assert_allclose(op.step(p, v, 10.0), op.step_lu(p, v, 10.0), rtol=1e-12)

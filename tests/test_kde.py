@@ -70,6 +70,35 @@ def test_binned_agrees_with_exact(n_robots, rng):
     )
 
 
+@pytest.mark.parametrize("n_robots", [5000, 200_000])
+def test_parallel_binning_equals_reference_and_is_independent_of_thread_count(n_robots, rng):
+    """Chunked parallel binning: 1 and 2 numba threads give the same bits, and both
+    equal the numpy reference (np.bincount) to round-off. 200 000 robots make
+    several chunks (and more than one batch of chunks).
+    """
+    import numba
+
+    from harness.kernels import BIN_BATCH, bin_chunk_size, linear_binning_chunked
+
+    g = Grid.square(30)
+    kde = KDE(g, 0.04)
+    positions = Box(0.1, 0.9, 0.0, 0.6).sample(n_robots, g, rng)
+    chunk = min(bin_chunk_size(n_robots, 121 * 121), 12_000)
+    results = []
+    before = numba.get_num_threads()
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            results.append(linear_binning_chunked(positions, 0.0, 1.0, 0.0, 1.0, 120, 120, chunk))
+    finally:
+        numba.set_num_threads(before)
+    assert n_robots < chunk or n_robots > BIN_BATCH * chunk
+    assert np.array_equal(results[0], results[1])
+    ref = kde.bin_weights(positions)
+    np.testing.assert_allclose(results[0], ref, rtol=1e-12, atol=1e-300)
+    assert results[0].sum() == pytest.approx(1.0, rel=1e-12)
+
+
 def test_auto_method_switches_on_robot_count(rng):
     g = Grid.square(10)
     kde = KDE(g, 0.1, exact_max_robots=100)

@@ -20,7 +20,13 @@ import numpy as np
 import scipy.linalg as sla
 from filterpy.kalman import KalmanFilter
 
-from harness.filters.common import FilterSettings, Integrator, MeasurementModel, transition_dense
+from harness.filters.common import (
+    BandLimit,
+    FilterSettings,
+    Integrator,
+    MeasurementModel,
+    transition_dense,
+)
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.velocity import VelocityField
@@ -59,12 +65,14 @@ class DenseKalman:
             kf.H = np.eye(m)
             self._kf = kf
 
-    def predict(self, F: np.ndarray, q: float, u: np.ndarray | None = None) -> None:
-        """``x^- = F x^+ + u``, ``P^- = F P^+ F^T + q I``."""
+    def predict(self, F: np.ndarray, q: float | np.ndarray, u: np.ndarray | None = None) -> None:
+        """``x^- = F x^+ + u``, ``P^- = F P^+ F^T + Q`` with ``Q = q I`` (``q`` a number)
+        or ``Q = q`` (a matrix).
+        """
         if self._kf is not None:
             m = self.x.size
             self._kf.F = F
-            self._kf.Q = q * np.eye(m)
+            self._kf.Q = q * np.eye(m) if np.ndim(q) == 0 else np.asarray(q)
             if u is None:
                 self._kf.predict()
             else:
@@ -76,11 +84,15 @@ class DenseKalman:
             if u is not None:
                 self.x = self.x + u
             self.P = F @ self.P @ F.T
-            self.P[np.diag_indices_from(self.P)] += q
+            if np.ndim(q) == 0:
+                self.P[np.diag_indices_from(self.P)] += q
+            else:
+                self.P = self.P + q
         self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
 
     def update(self, y: np.ndarray, r: np.ndarray) -> None:
-        """Measurement update with ``H = I`` and ``R = diag(r)``:
+        """Measurement update with ``H = I`` and ``R = diag(r)`` (``r`` a vector) or
+        ``R = r`` (a matrix):
 
             S = P^- + R,  K = P^- S^{-1},  x^+ = x^- + K (y - x^-),
             P^+ = (I - K) P^- (I - K)^T + K R K^T = P^- - P^- S^{-1} P^-.
@@ -91,11 +103,14 @@ class DenseKalman:
         """
         y = np.asarray(y, dtype=float).ravel()
         if self._kf is not None:
-            self._kf.update(y.reshape(-1, 1), R=np.diag(r))
+            self._kf.update(y.reshape(-1, 1), R=np.diag(r) if np.ndim(r) == 1 else r)
             self.x, self.P = self._kf.x.ravel().copy(), self._kf.P.copy()
         else:
-            s = self.P.copy()
-            s[np.diag_indices_from(s)] += r
+            if np.ndim(r) == 1:
+                s = self.P.copy()
+                s[np.diag_indices_from(s)] += r
+            else:
+                s = self.P + r
             low = sla.cholesky(s, lower=True, check_finite=False)
             v = sla.solve_triangular(low, self.P, lower=True, check_finite=False)
             innovation = sla.solve_triangular(low, y - self.x, lower=True, check_finite=False)
@@ -126,6 +141,29 @@ class _DenseGridFilter:
         self.operator = FokkerPlanck(grid, sigma)
         self.engine = engine
         self.kf: DenseKalman | None = None
+        band = BandLimit(grid, self.settings.band_limit / measurement.bandwidth)
+        self.projector: np.ndarray | None = None if band.is_identity else band.matrix()
+
+    def _project_model(
+        self, f: np.ndarray, y: np.ndarray, r: np.ndarray, u: np.ndarray | None = None
+    ) -> tuple[np.ndarray, float | np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """The band-limited model of :class:`~harness.filters.common.BandLimit` with
+        projector ``Pi`` (``Pi_g = G Pi G^+`` for the gradient): ``F' = Pi F``, ``u' =
+        Pi u``, ``Q' = Pi Q Pi = q Pi``, ``y' = Pi y`` and ``R' = Pi R Pi + (I - Pi)``
+        (any positive block outside the band: the prior has no variance there, so the
+        gain vanishes on it). Unchanged when every grid mode is kept.
+        """
+        if self.projector is None:
+            return f, self.q, y, r, u
+        pi = self.projector
+        r_full = pi @ (r[:, None] * pi) + (np.eye(pi.shape[0]) - pi)
+        return (
+            pi @ f,
+            self.q * pi,
+            pi @ np.asarray(y).ravel(),
+            r_full,
+            None if u is None else pi @ u,
+        )
 
     @property
     def q(self) -> float:
@@ -135,10 +173,16 @@ class _DenseGridFilter:
         return self.settings.process_noise * self.dt * self.measurement.constants[self._kind]
 
     def _start(self, y0: np.ndarray) -> None:
-        """``x0 = y0``, ``P0 = initial_variance k I`` (or ``k_g I``)."""
+        """``x0 = Pi y0``, ``P0 = initial_variance k Pi`` (or ``k_g``; ``Pi = I`` when
+        every grid mode is kept).
+        """
         m = self._states * self.grid.size
         var = self.settings.initial_variance * self.measurement.constants[self._kind]
-        self.kf = DenseKalman(np.asarray(y0).ravel(), var * np.eye(m), engine=self.engine)
+        x0 = np.asarray(y0, dtype=float).ravel()
+        p0 = var * np.eye(m)
+        if self.projector is not None:
+            x0, p0 = self.projector @ x0, var * self.projector
+        self.kf = DenseKalman(x0, p0, engine=self.engine)
 
     @property
     def trace_P(self) -> float:
@@ -169,8 +213,9 @@ class ReferenceDensityFilter(_DenseGridFilter):
         """Predict over the last interval under ``v_applied``, then update with ``p_kde``."""
         assert self.kf is not None, "call initialize first"
         f = transition_dense(self.operator.matrix(v_applied), self.dt)
-        self.kf.predict(f, self.q)
-        self.kf.update(p_kde, self.measurement.density_variance(p_kde))
+        f, q, y, r, _ = self._project_model(f, p_kde, self.measurement.density_variance(p_kde))
+        self.kf.predict(f, q)
+        self.kf.update(y, r)
         return self.estimate
 
     @property
@@ -201,6 +246,10 @@ class ReferenceGradientFilter(_DenseGridFilter):
         super().__init__(grid, sigma, dt, measurement, engine)
         self.integrator = integrator or Integrator.build(grid)
         self.G = grid.gradient_matrix.tocsr()
+        if self.projector is not None:
+            # Pi_g = G Pi G^+: Pi commutes with G^T G (both diagonal in the DCT basis),
+            # so Pi_g is the orthogonal projector onto gradients of band-limited fields
+            self.projector = self.G @ (self.projector @ self.integrator.pinv)
 
     _kind = 1
     _states = 2
@@ -221,9 +270,11 @@ class ReferenceGradientFilter(_DenseGridFilter):
         from ``p_KDE``).
         """
         assert self.kf is not None, "call initialize first"
+        r = self.measurement.gradient_variance(p_kde)
         if self.engine == "filterpy":
-            fg, u = self.transition(v_applied)
-            self.kf.predict(fg, self.q, u)
+            fg, u0 = self.transition(v_applied)
+            fg, q, y, r, u = self._project_model(fg, grad_kde, r, u0)
+            self.kf.predict(fg, q, u)
         else:
             # Same equations, grouped to avoid forming F_g: with Z = G^+ P G^+T,
             # F_g P F_g^T = G (F Z F^T) G^T and F_g x = G F (G^+ x).
@@ -235,8 +286,14 @@ class ReferenceGradientFilter(_DenseGridFilter):
             kf.P = self.G @ (self.G @ fz).T
             kf.P[np.diag_indices_from(kf.P)] += self.q
             kf.x = self.G @ (f @ (pinv @ kf.x + 1.0 / self.grid.area))
+            y = grad_kde
+            if self.projector is not None:
+                pi = self.projector
+                kf.P = pi @ kf.P @ pi.T
+                kf.x = pi @ kf.x
+                _, _, y, r, _ = self._project_model(pi, grad_kde, r)
             kf.x_prior, kf.P_prior = kf.x.copy(), kf.P.copy()
-        self.kf.update(grad_kde, self.measurement.gradient_variance(p_kde))
+        self.kf.update(y, r)
         return self.estimate
 
     @property

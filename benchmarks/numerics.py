@@ -1,0 +1,196 @@
+"""Numerics benchmarks of the fine-grid issue: each figure against its target.
+
+    python -m benchmarks.numerics [--quick]
+
+Medians of wall-clock times (ms per call) or rates over a run (steps per second), BLAS
+pinned to one thread (threadpoolctl) as in the run loop; numba uses its default
+thread count (all cores). Run with nothing else on the machine: on a busy machine
+the parallel kernels wait for descheduled threads and every figure is pessimistic.
+
+Figures (targets from the issue):
+
+* Fokker-Planck step (``FokkerPlanck.step`` with matrix assembly), mid-run paper
+  settings (sigma = 5e-5, dt = 0.01, the paper's law with alpha = 0.003 evaluated
+  halfway between a KDE of the initial box and p_*): n = 128 <= 5 ms, n = 256 <=
+  20 ms; the sparse-LU reference step for comparison;
+* KDE (binned, n = 30, h = 0.04) + agent step: N = 1e6 <= 20 ms; N = 1e7 <= 250 ms
+  with peak resident memory <= 1.5 GB (measured in a child process, ``ru_maxrss``,
+  which includes the interpreter and numba, about 0.2 GB);
+* closed loop with both fast filters, N = 1024, dt = 0.01 (robots, KDE, filters,
+  paper's law, Fokker-Planck truth): n = 30 >= 1000 steps/s, n = 64 >= 200,
+  n = 128 >= 100, n = 256 >= 25.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from functools import partial
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from harness.agents import Swarm
+from harness.control import paper_law
+from harness.densities import DEFAULT_TARGET, Box, Target
+from harness.filters.common import FilterSettings, MeasurementModel
+from harness.filters.local import LocalFilters
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.kde import KDE
+from harness.velocity import VelocityField
+
+
+def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
+    """Median wall time of ``fn`` in ms."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def line(name: str, value: float, unit: str, target: float | None, lower_is_better: bool) -> bool:
+    """Print one figure against its target; return whether it is met."""
+    if target is None:
+        print(f"  {name:<50s} {value:10.3f} {unit}")
+        return True
+    ok = value <= target if lower_is_better else value >= target
+    rel = "<=" if lower_is_better else ">="
+    verdict = "OK" if ok else "MISSED"
+    print(f"  {name:<50s} {value:10.3f} {unit}   target {rel} {target:g} {unit}   {verdict}")
+    return ok
+
+
+def mid_run(g: Grid) -> tuple[np.ndarray, VelocityField]:
+    """Density halfway between a KDE of the initial box and ``p_*`` and the paper's
+    velocity for it (alpha = 0.003, sigma = 5e-5)."""
+    target = Target.from_density(g, DEFAULT_TARGET)
+    y, _ = KDE(g, 0.04)(Box().sample(1024, g, np.random.default_rng(0)))
+    p = 0.5 * (y + target.p)
+    return p, paper_law(p, g.gradient(p), target, 0.003, 5e-5)
+
+
+def bench_fokker_planck(quick: bool) -> bool:
+    """Fokker-Planck step at n = 128 and 256."""
+    print("Fokker-Planck step, mid-run paper settings (ms per step, assembly included):")
+    ok = True
+    for n, target_ms in ((30, None), (64, None), (128, 5.0), (256, 20.0)):
+        g = Grid.square(n)
+        p, v = mid_run(g)
+        op = FokkerPlanck(g, 5e-5)
+        repeats = 10 if quick else 40
+        t_step = median_ms(partial(op.step, p, v, 0.01), repeats)
+        ok &= line(f"n = {n}: step", t_step, "ms", target_ms, True)
+        if n >= 128:
+            t_lu = median_ms(partial(op.step_lu, p, v, 0.01), 3)
+            line(f"n = {n}: sparse-LU reference step", t_lu, "ms", None, True)
+    return ok
+
+
+def kde_agents_child(n_robots: int, repeats: int) -> None:
+    """In a child process: print the median ms of one agent step plus one KDE."""
+    g = Grid.square(30)
+    rng = np.random.default_rng(0)
+    _, v = mid_run(g)
+    swarm = Swarm(g, Box().sample(n_robots, g, rng), 5e-5)
+    kde = KDE(g, 0.04)
+
+    def both() -> None:
+        swarm.step(v, 0.01, rng)
+        kde(swarm.positions)
+
+    with threadpool_limits(1):
+        print(median_ms(both, repeats, warmup=1))
+
+
+def bench_kde_agents(quick: bool) -> bool:
+    """KDE + agent step at N = 1e6 and 1e7 (child processes, peak memory)."""
+    print("KDE (binned, n = 30) + agent step (ms per step; peak RSS of the process):")
+    ok = True
+    for n_robots, target_ms, target_gb in ((10**6, 20.0, None), (10**7, 250.0, 1.5)):
+        repeats = 5 if quick else 15
+        out = subprocess.run(
+            [sys.executable, "-m", "benchmarks.numerics", "--child", str(n_robots), str(repeats)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20  # kB -> GB
+        ms = float(out.stdout.strip().splitlines()[-1])
+        ok &= line(f"N = {n_robots:>10,d}: KDE + agent step", ms, "ms", target_ms, True)
+        if target_gb is not None:  # children so far: this one is the largest
+            ok &= line(f"N = {n_robots:>10,d}: peak memory", peak_gb, "GB", target_gb, True)
+    return ok
+
+
+def closed_loop_rate(n: int, steps: int) -> float:
+    """Steps per second of the paper's loop with both fast filters (N = 1024)."""
+    sigma, dt, alpha = 5e-5, 0.01, 0.003
+    g = Grid.square(n)
+    rng = np.random.default_rng(0)
+    target = Target.from_density(g, DEFAULT_TARGET)
+    swarm = Swarm(g, Box().sample(1024, g, rng), sigma)
+    kde = KDE(g, 0.04)
+    truth = FokkerPlanck(g, sigma)
+    filters = LocalFilters(g, sigma, dt, MeasurementModel(1024, 0.04, FilterSettings()))
+    p = Box().on_grid(g)
+    y, yg = kde(swarm.positions)
+    v = paper_law(*filters.initialize(y, yg), target, alpha, sigma)
+
+    def step() -> None:
+        nonlocal p, v
+        a = truth.matrix(v)
+        swarm.step(v, dt, rng)
+        p = truth.step(p, v, dt, a)
+        y, yg = kde(swarm.positions)
+        v = paper_law(*filters.step(y, yg, v, a), target, alpha, sigma)
+
+    for _ in range(5):
+        step()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step()
+    return steps / (time.perf_counter() - t0)
+
+
+def bench_closed_loop(quick: bool) -> bool:
+    """Closed-loop rates at n = 30 .. 256."""
+    print("Closed loop, both fast filters, N = 1024, dt = 0.01 (steps per second):")
+    ok = True
+    for n, target, steps in ((30, 1000, 1000), (64, 200, 400), (128, 100, 200), (256, 25, 60)):
+        rate = closed_loop_rate(n, steps // 4 if quick else steps)
+        ok &= line(f"n = {n}", rate, "steps/s", target, False)
+    return ok
+
+
+def main() -> None:
+    """Run every benchmark and print the figures against their targets."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="fewer repeats")
+    parser.add_argument("--child", nargs=2, type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        kde_agents_child(*args.child)
+        return
+    import numba
+
+    print(f"numba threads: {numba.get_num_threads()}, layer on first use")
+    results = []
+    with threadpool_limits(1):
+        results.append(bench_fokker_planck(args.quick))
+    results.append(bench_kde_agents(args.quick))
+    with threadpool_limits(1):
+        results.append(bench_closed_loop(args.quick))
+    print("all targets met" if all(results) else "some targets MISSED")
+
+
+if __name__ == "__main__":
+    main()
