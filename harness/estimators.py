@@ -179,11 +179,18 @@ class FilterEstimator:
         robots: Swarm size ``N`` of the KDE noise constants ``k``, ``k_g``.
         bandwidth: KDE bandwidth ``h`` (length).
         dt: Measurement period (s).
-        process_noise, r_scale, r_floor, initial_variance: As
+        process_noise, r_scale, r_floor, initial_variance, band_limit: As
             :class:`harness.filters.common.FilterSettings` (``filter.*``).
     """
 
     uses_kde = True
+
+    def resolution(self, measured: float | None) -> float | None:
+        """The measurement's resolution: the filters estimate only the cosine modes of
+        ``|k| <= band_limit / h`` that the KDE resolves (:class:`~harness.filters.common.BandLimit`), so their
+        estimates carry no finer content than the measurement.
+        """
+        return measured
 
     def __init__(
         self,
@@ -197,6 +204,7 @@ class FilterEstimator:
         r_scale: float = 1.0,
         r_floor: float = 0.05,
         initial_variance: float = 10.0,
+        band_limit: float = 2.5,
     ) -> None:
         engines = sorted(FilterEngine.registry)
         if method not in FilterEngine.registry:
@@ -206,6 +214,7 @@ class FilterEstimator:
             r_scale=number("r_scale", r_scale, 0.0, strict=True),
             r_floor=number("r_floor", r_floor, 0.0, strict=True),
             initial_variance=number("initial_variance", initial_variance, 0.0, strict=True),
+            band_limit=number("band_limit", band_limit, 0.0, strict=True),
         )
         measurement = MeasurementModel(
             integer("robots", robots, 1), number("bandwidth", bandwidth, 0.0, strict=True), settings

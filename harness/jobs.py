@@ -25,6 +25,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numba
 from hydra.experimental.callback import Callback
 from mcap.reader import make_reader
 from omegaconf import DictConfig
@@ -170,6 +171,8 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
         print(err, file=sys.stderr)
         write_status(out, state="invalid", reason=str(err), **ident)
         return None
+    # one core per job: the sweep runs a job per core, so the per-robot kernels stay serial
+    numba.set_num_threads(1)
     runs = read_status(out).get("runs", 0) + 1
     write_status(out, state="running", runs=runs, reason="", **ident)
     try:

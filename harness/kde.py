@@ -37,6 +37,7 @@ fluctuates with variance ``Var[p_KDE] ~ k p`` and ``Var[d_i p_KDE] ~ k_g p``,
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -138,11 +139,14 @@ class KDE:
     exact_max_robots: int = 512
     _node_kernels: tuple[np.ndarray, ...] = field(init=False, repr=False)
     _work: dict[int, tuple[np.ndarray, ...]] = field(init=False, repr=False, default_factory=dict)
+    _paths: dict[str, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]] = field(
+        init=False, repr=False
+    )
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.bandwidth) and self.bandwidth > 0):
             raise ValueError(f"kde bandwidth must be > 0, got {self.bandwidth}")
-        if self.method not in ("exact", "binned", "auto"):
+        if self.method not in self.METHODS:
             raise ValueError(f"kde method must be exact, binned or auto, got {self.method!r}")
         if self.bin_factor < 1:
             raise ValueError(f"kde bin_factor must be >= 1, got {self.bin_factor}")
@@ -152,6 +156,7 @@ class KDE:
         kx, dkx = kernel_1d(self._nodes_x, g.x, self.bandwidth, g.x0, g.x1, self.mirror)
         ky, dky = kernel_1d(self._nodes_y, g.y, self.bandwidth, g.y0, g.y1, self.mirror)
         self._node_kernels = (kx, dkx, ky, dky)
+        self._paths = {name: getattr(self, name) for name in self.METHODS}
 
     def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Estimate ``(p_KDE, grad p_KDE)`` from positions of shape ``(2, N)``.
@@ -163,10 +168,11 @@ class KDE:
         positions = np.asarray(positions, dtype=float)
         if positions.ndim != 2 or positions.shape[0] != 2 or positions.shape[1] < 1:
             raise ValueError(f"positions must have shape (2, N) with N >= 1, got {positions.shape}")
-        method = self.method
-        if method == "auto":
-            method = "exact" if positions.shape[1] <= self.exact_max_robots else "binned"
-        if method == "exact":
+        return self._paths[self.method](positions)
+
+    def auto(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`exact` up to ``exact_max_robots`` robots, :meth:`binned` above."""
+        if positions.shape[1] <= self.exact_max_robots:
             return self.exact(positions)
         return self.binned(positions)
 

@@ -156,10 +156,10 @@ def test_lyapunov_never_increases_in_closed_loop(n, alpha, dt, steps):
     sigma = 5e-5
     op = FokkerPlanck(grid, sigma)
     p = Box().on_grid(grid)
-    # The paper's own setting (first case) sits just above the worst-case bound
-    # (0.0093 s), which takes the largest ratio p/p_* at one cell; it stays monotone.
-    bound = sampled_data_dt_bound(grid, alpha * float(np.max(p / target.p)))
-    assert dt <= 1.1 * bound
+    # Both cases are within the sampled-data bound for the start's largest feedback
+    # diffusivity alpha max(p/p_*) (the paper's setting by a factor of about 4)
+    bound = sampled_data_dt_bound(grid, alpha * float(np.max(p / target.p)), None, sigma)
+    assert dt <= bound
     values = [lyapunov(grid, p, target)]
     for _ in range(steps):
         v = paper_law(p, grid.gradient(p), target, alpha, sigma)
