@@ -187,8 +187,9 @@ class FilterEstimator:
 
     def resolution(self, measured: float | None) -> float | None:
         """The measurement's resolution: the filters estimate only the cosine modes of
-        ``|k| <= band_limit / h`` that the KDE resolves (:class:`~harness.filters.common.BandLimit`), so their
-        estimates carry no finer content than the measurement.
+        ``|k| <= band_limit / h`` that the KDE resolves
+        (:class:`~harness.filters.common.BandLimit`), so their estimates carry no finer
+        content than the measurement.
         """
         return measured
 
