@@ -192,8 +192,8 @@ def check_resolvable(cfg: DictConfig) -> None:
                 cfg[name]
         except OmegaConfBaseException as err:
             key = str(getattr(err, "full_key", "") or name)
+            raw: Any = OmegaConf.to_container(cfg, resolve=False)
             try:
-                raw = OmegaConf.to_container(cfg, resolve=False)
                 for part in key.split("."):
                     raw = raw[part] if isinstance(raw, dict) else raw[int(part)]
             except (KeyError, ValueError, IndexError, TypeError):
@@ -285,15 +285,14 @@ def check_memory(cfg: DictConfig, grid: Grid, available: tuple[int, str] | None 
             cls = hydra.utils.get_class(str(node._target_))
         except Exception:  # not a class (a factory function) or not importable: built later
             cls = object
-        params = {k: v for k, v in OmegaConf.to_container(node, resolve=True).items()}
+        resolved = OmegaConf.to_container(node, resolve=True)
+        params = {str(k): v for k, v in resolved.items()} if isinstance(resolved, dict) else {}
         params.pop("_target_", None)
         try:
             estimate = memory_estimate(cls, grid, params)
         except Exception:  # a bad parameter is refused when the component is built
             estimate = default_memory(grid)
-        key = f"{group}.{estimate.parameter}" if estimate.parameter else "grid.n"
-        if estimate.parameter:
-            key = _public_key(cfg, group, estimate.parameter)
+        key = _public_key(cfg, group, estimate.parameter) if estimate.parameter else "grid.n"
         parts.append((estimate.nbytes, key))
     total = sum(b for b, _ in parts)
     have = memory_available() if available is None else available
