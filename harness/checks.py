@@ -53,6 +53,9 @@ MIN_BANDWIDTH_CELLS = 0.1
 than a cell is sampled only at cell centres, so its grid integral is no longer 1 and
 its noise constants ``k ~ 1 / h^2``, ``k_g ~ 1 / h^4`` overflow for tiny ``h``."""
 
+SHARED_BLOCKS = ("grid", "agents", "dynamics", "sim", "kde", "log")
+"""Config blocks every run needs."""
+
 GROUPS = ("plant", "estimator", "control", "target", "init")
 """Config groups whose node is one component (``_target_`` and its parameters)."""
 
@@ -156,7 +159,7 @@ def check_shared(cfg: DictConfig) -> None:
         raise ConfigError("log.progress", log.get("progress"), f"one of {', '.join(PROGRESS)}")
     if dt > t_final:
         raise ConfigError("sim.dt", dt, f"at most sim.t_final = {t_final}")
-    if round(t_final / dt) > MAX_STEPS:
+    if t_final / dt > MAX_STEPS:
         raise ConfigError("sim.t_final", t_final, f"at most {MAX_STEPS:.0e} steps of sim.dt")
     # Euler-Maruyama with reflection: a noise step must be well inside the domain
     if math.sqrt(2 * sigma * dt) > length / 10:
@@ -179,8 +182,12 @@ def check_resolvable(cfg: DictConfig) -> None:
 
     Raises:
         ConfigError: naming the first key whose value does not resolve, its raw value
-            and OmegaConf's reason (a missing key, a deleted block, a bad resolver).
+            and OmegaConf's reason (a missing key, a deleted block, a bad resolver); a
+            deleted shared block (``~sim``) is named itself.
     """
+    for block in SHARED_BLOCKS:
+        if block not in cfg:
+            raise ConfigError(block, None, "a required config block")
     for name in cfg:
         if name == "hydra":
             continue

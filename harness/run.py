@@ -128,10 +128,13 @@ NUMERICAL = (
     OverflowError,
     np.linalg.LinAlgError,
     spla.MatrixRankWarning,
+    RuntimeWarning,
 )
 """Exceptions inside the loop that mean the numbers broke down: the run ends
 ``diverged`` with the reason (so does a ``RuntimeError`` saying a factorisation is
-singular, as SuperLU's ``splu`` raises)."""
+singular, as SuperLU's ``splu`` raises). Inside the loop numpy's floating-point
+warnings from the harness (overflow, division by zero, invalid value) are errors, as in
+the test suite."""
 
 DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 """``errno`` values of a write that failed for want of space."""
@@ -273,6 +276,7 @@ def _run(cfg: DictConfig, parts: Any, out_dir: Path, stop: StopRequest, live: An
     try:
         with threadpool_limits(1), warnings.catch_warnings():
             warnings.simplefilter("error", spla.MatrixRankWarning)
+            warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
             lam = poincare_constant(loop.grid, target.p)
             theory = {"poincare_lambda": repr(lam)}
             alpha = getattr(parts.control, "alpha", None)
