@@ -5,8 +5,8 @@ Hydra cannot resume a sweep. Each job of a multirun therefore
 
 * skips itself only when its directory holds a ``run.mcap`` that is complete, reads
   back whole (chunk CRCs checked, the message count equal to the summary's), has
-  status ``completed``, and whose ``config_hash`` record equals the hash of the job's
-  resolved config (:func:`config_hash`); otherwise it runs again and its
+  status ``completed``, and whose ``provenance`` record's ``config_sha256`` equals the
+  hash of the job's resolved config (:func:`config_hash`); otherwise it runs again and its
   ``job_status.json`` says why (``rerun_reason``). A complete log of another config is
   moved aside (``run.previous-K.mcap``), never overwritten;
 * runs in a process of its own (forked from the launcher's worker, which only waits),
@@ -89,7 +89,8 @@ OmegaConf.register_new_resolver("densityloop.pid", lambda: str(os.getpid()), rep
 class LogCheck:
     """What :func:`verify_log` found: ``complete`` (a summary and a footer), ``intact``
     (every record read back with valid CRCs and the summary's message count),
-    ``state`` (of the status record), ``config_hash`` (of its record) and ``problem``
+    ``state`` (of the status record), ``config_hash`` (``config_sha256`` of the
+    provenance record) and ``problem``
     (why it cannot be trusted, empty when it can).
     """
 
@@ -122,8 +123,8 @@ def verify_log(path: Path) -> LogCheck:
                     count += 1
                 elif isinstance(record, Metadata) and record.name == "status":
                     state = record.metadata.get("state")
-                elif isinstance(record, Metadata) and record.name == "config_hash":
-                    digest = record.metadata.get("sha256")
+                elif isinstance(record, Metadata) and record.name == "provenance":
+                    digest = record.metadata.get("config_sha256")
     except Exception as err:
         return LogCheck(True, False, state, digest, f"damaged ({type(err).__name__}: {err})")
     if count != expected:

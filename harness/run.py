@@ -258,7 +258,7 @@ def _run(cfg: DictConfig, parts: Any, out_dir: Path, stop: StopRequest, live: An
         out_dir / "run.mcap",
         parts.grid,
         OmegaConf.to_yaml(cfg, resolve=True),
-        provenance(cfg.seed),
+        {**provenance(cfg.seed), "config_sha256": config_hash(cfg)},
         cfg.log.field_every,
         cfg.log.positions_every,
         steps,
@@ -283,7 +283,6 @@ def _run(cfg: DictConfig, parts: Any, out_dir: Path, stop: StopRequest, live: An
             if isinstance(alpha, float):  # laws with a gain alpha: the exact-estimate rate
                 theory["rate_exact"] = repr((alpha + cfg.dynamics.sigma) * lam)
             logger.add_metadata("theory", theory)
-            logger.add_metadata("config_hash", {"sha256": config_hash(cfg)})
             logger.write_target(target.p)
             stop.interruptible = True
             rec = loop.start()
