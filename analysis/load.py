@@ -291,7 +291,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
         raise LogError(f"no run log at {path}")
     if path.stat().st_size == 0:
         raise LogError(f"{path} is empty")
-    metrics: dict[str, list] = {}
+    metric_rows: list[dict[str, float]] = []
     grids: dict[str, dict] = {}
     pos_t: list[float] = []
     positions: list[np.ndarray] = []
@@ -321,7 +321,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
                     schema = schemas.get(channel.schema_id)
                     try:
                         n_messages += _take(
-                            record, channel, schema, metrics, grids, pos_t, positions
+                            record, channel, schema, metric_rows, grids, pos_t, positions
                         )
                     except Exception:  # a damaged message: skip it, count it
                         n_bad += 1
@@ -333,7 +333,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
         raise LogError(f"{path} holds no readable densityloop data ({problem or 'no messages'})")
     recovery = None
     if problem is not None or not complete or n_bad:
-        last_t = max((v[-1] for v in [metrics.get("t", [])] if v), default=float("nan"))
+        last_t = metric_rows[-1]["t"] if metric_rows else float("nan")
         recovery = (
             f"recovered {n_messages} messages up to t = {last_t:.3f} s"
             f"{f', skipped {n_bad} damaged' if n_bad else ''}; "
@@ -341,7 +341,6 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
             f"{f' ({problem})' if problem else ''}"
         )
         warnings.warn(f"{path}: {recovery}", LogWarning, stacklevel=2)
-    n_t = min((len(v) for v in metrics.values()), default=0)
     fields = {
         topic: FieldSeries(np.array(g["t"]), np.stack(g["v"]), g["names"], g["o"], g["c"])
         for topic, g in grids.items()
@@ -350,7 +349,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     return RunLog(
         path=path,
         metadata=metadata,
-        metrics={k: np.asarray(v[:n_t], dtype=float) for k, v in metrics.items()},
+        metrics=_metric_arrays(metric_rows),
         fields=fields,
         positions_t=np.array(pos_t),
         positions=positions,
@@ -358,7 +357,17 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     )
 
 
-def _take(record, channel, schema, metrics, grids, pos_t, positions) -> bool:
+def _metric_arrays(rows: list[dict[str, float]]) -> dict[str, np.ndarray]:
+    """One array per metric key over all rows, aligned: NaN where a row lacks the key
+    (a foreign or older log), so index ``i`` of every array is the same message.
+    """
+    keys: dict[str, None] = {}
+    for row in rows:
+        keys.update(dict.fromkeys(row))
+    return {k: np.array([row.get(k, np.nan) for row in rows], dtype=float) for k in keys}
+
+
+def _take(record, channel, schema, metric_rows, grids, pos_t, positions) -> bool:
     """Decode one message of a known topic into the accumulators; False when the
     topic or schema is not one of the log contract's.
     """
@@ -369,10 +378,11 @@ def _take(record, channel, schema, metrics, grids, pos_t, positions) -> bool:
         if not isinstance(values, dict) or "t" not in values:
             raise ValueError("metrics message is not a JSON object with a time")
         row = {key: np.nan if value is None else float(value) for key, value in values.items()}
-        for key, value in row.items():
-            metrics.setdefault(key, []).append(value)
+        metric_rows.append(row)
     elif channel.topic.startswith("/fields/") and name == "foxglove.Grid":
         values, names, origin, cell = _decode_grid(GridMsg.FromString(record.data))
+        if values.size == 0 or not names:
+            raise ValueError("empty grid")
         g = grids.setdefault(
             channel.topic, {"t": [], "v": [], "names": names, "o": origin, "c": cell}
         )

@@ -97,26 +97,47 @@ def decay_rate(t: np.ndarray, phi: np.ndarray) -> float:
     return float(-slope)
 
 
+class SweepWarning(UserWarning):
+    """A log whose metadata or metrics are not what this project writes."""
+
+
+def _stat(fn: Any, values: np.ndarray) -> float:
+    """``fn(values)`` over the finite entries; NaN when there are none."""
+    finite = values[np.isfinite(values)]
+    return float(fn(finite)) if finite.size else math.nan
+
+
 def job_stats(run, tail: float) -> dict[str, float]:
-    """The statistics of one run (see the module docstring)."""
+    """The statistics of one run (see the module docstring); NaN for a statistic whose
+    metric the log lacks, and a :class:`SweepWarning` for metadata that is not a number.
+    """
     m = run.metrics
     t = m["t"]
     last = t >= t[-1] * (1 - tail)
+    missing = np.full(t.shape, np.nan)
 
-    def tail_mean(key):
-        return float(np.nanmean(m[key][last])) if key in m and last.any() else math.nan
+    def col(key):
+        return m.get(key, missing)
 
     theory = run.metadata.get("theory", {})
+    rate_theory = _float(theory.get("rate_exact", "nan"))
+    if "rate_exact" in theory and not math.isfinite(rate_theory):
+        warnings.warn(
+            f"{run.path}: theory record rate_exact={theory.get('rate_exact')!r} is not a "
+            "number; rate_theory is NaN",
+            SweepWarning,
+            stacklevel=2,
+        )
     return {
-        "phi_tail_mean": tail_mean("phi_l2"),
-        "phi_tail_sup": float(np.nanmax(m["phi_l2"][last])),
-        "phat_tail_mean": tail_mean("phat_target_l2"),
-        "eps_tail_mean": tail_mean("eps_l2"),
-        "eps_g_tail_mean": tail_mean("eps_g_l2"),
-        "eps_sup": float(np.nanmax(m["eps_l2"])),
-        "eps_g_sup": float(np.nanmax(m["eps_g_l2"])),
-        "rate_fit": decay_rate(t, m["phi_l2"]),
-        "rate_theory": _float(theory.get("rate_exact")),
+        "phi_tail_mean": _stat(np.mean, col("phi_l2")[last]),
+        "phi_tail_sup": _stat(np.max, col("phi_l2")[last]),
+        "phat_tail_mean": _stat(np.mean, col("phat_target_l2")[last]),
+        "eps_tail_mean": _stat(np.mean, col("eps_l2")[last]),
+        "eps_g_tail_mean": _stat(np.mean, col("eps_g_l2")[last]),
+        "eps_sup": _stat(np.max, col("eps_l2")),
+        "eps_g_sup": _stat(np.max, col("eps_g_l2")),
+        "rate_fit": decay_rate(t, col("phi_l2")),
+        "rate_theory": rate_theory,
         "t_end": float(t[-1]),
         **swarm_stats(run, last),
     }
@@ -147,6 +168,25 @@ def swarm_stats(run, last: np.ndarray) -> dict[str, float]:
     return out
 
 
+def mixed(rows: list[dict[str, Any]], primary: list[str]) -> list[str]:
+    """Varied config keys that the ``primary`` keys do not explain: keys taking more than
+    one value among jobs that agree on every primary key. Non-empty means the directory
+    holds more than one sweep.
+    """
+    groups: dict[str, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(
+            repr([value(r, k) if k != "law" else r.get("law") for k in primary]), []
+        ).append(r)
+    out = []
+    for key in varied(rows):
+        if key in primary or key == "seed":
+            continue
+        if any(len({repr(value(r, key)) for r in g}) > 1 for g in groups.values()):
+            out.append(key)
+    return out
+
+
 def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows of the CSV and the decoded metrics per job directory.
 
@@ -166,10 +206,13 @@ def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], 
             row["state"] = f"unreadable: {err}"
             rows.append(row)
             continue
+        if run.recovery is not None:  # damaged or cut short: say so, whatever its status says
+            row["recovery"] = run.recovery
+            warnings.warn(f"{log_path}: {run.recovery}", SweepWarning, stacklevel=2)
         flat = flatten(logged_config(run))
         row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
         row["law"] = component(flat, "control")
-        row["state"] = run.state
+        row["state"] = run.state if run.recovery is None else f"damaged ({run.state})"
         row["wall_s"] = _float(run.metadata.get("status", {}).get("wall_s"))
         if "t" in run.metrics and len(run.metrics["t"]) > 2:
             row.update(job_stats(run, tail))
@@ -214,7 +257,7 @@ def value(row: dict[str, Any], key: str) -> Any:
 def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
     """Tidy CSV: the varied config keys, the law, then the fixed columns."""
     keys = varied(rows)
-    fixed = ["dir", "state", *STATS, "wall_s"]
+    fixed = ["dir", "state", *STATS, "wall_s", "recovery"]
     with open(path, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=[*keys, "law", *fixed], restval="")
         writer.writeheader()
@@ -439,17 +482,38 @@ def main(argv: list[str] | None = None) -> int:
     if not 0 < args.tail <= 1:
         print(f"error: --tail must be in (0, 1], got {args.tail}", file=sys.stderr)
         return 2
-    rows, series = analyse(args.sweep_dir, args.tail)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SweepWarning)
+        rows, series = analyse(args.sweep_dir, args.tail)
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
     if not rows:
         print(f"error: no run.mcap below {args.sweep_dir}", file=sys.stderr)
+        return 2
+    keys = varied(rows)
+    usable = [r for r in rows if "phi_tail_sup" in r]
+    if "estimator.delta" in keys:
+        primary = ["law", "estimator.delta"]
+    elif "agents.n" in keys and "kde.debias" in keys:
+        primary = ["agents.n", "kde.debias"]
+    elif "agents.n" in keys:
+        primary = ["agents.n"]
+    else:  # a sweep of its own axes: every varied key but the seed
+        primary = [k for k in keys if k != "seed"]
+    extra = mixed(rows, primary)
+    if extra:
+        print(
+            f"error: {args.sweep_dir} holds more than one sweep: besides "
+            f"{', '.join(primary)} the jobs differ in {', '.join(extra)} "
+            "(analyse each sweep from a directory of its own)",
+            file=sys.stderr,
+        )
         return 2
     out = args.out or args.sweep_dir / "analysis"
     out.mkdir(parents=True, exist_ok=True)
     write_csv(rows, out / "sweep.csv")
     write_points(points(rows), out / "sweep_aggregated.csv")
     written = [out / "sweep.csv", out / "sweep_aggregated.csv"]
-    keys = varied(rows)
-    usable = [r for r in rows if "phi_tail_sup" in r]
     if usable and "estimator.delta" in keys:
         paths, gains = iss_figure(usable, out)
         written += paths

@@ -25,8 +25,8 @@ from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.checks import ConfigError, describe
-from harness.jobs import run_job
-from harness.run import run
+from harness.jobs import finish_sweep, run_job
+from harness.run import DiskFull, run
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
@@ -35,15 +35,16 @@ def main(cfg: DictConfig) -> None:
     hc = HydraConfig.get()
     out = Path(hc.runtime.output_dir)
     if hc.mode == RunMode.MULTIRUN:
-        result = run_job(cfg, out, hc.job.num, list(hc.overrides.task))
-        if result is None:
-            return
-    else:
-        try:
-            result = run(cfg, out)
-        except ConfigError as err:  # found only when the run starts (a live port in use)
-            print(err, file=sys.stderr)
-            sys.exit(2)
+        run_job(cfg, out, hc.job.num, list(hc.overrides.task))  # outcome in job_status.json
+        return
+    try:
+        result = run(cfg, out)
+    except ConfigError as err:  # found only when the run starts (a live port in use)
+        print(err, file=sys.stderr)
+        sys.exit(2)
+    except DiskFull as err:
+        print(err, file=sys.stderr)
+        sys.exit(1)
     m = result.last_metrics
     print(
         f"{result.state} after {result.steps} steps in {result.wall_s:.1f} s wall: "
@@ -59,8 +60,21 @@ if __name__ == "__main__":
     # Hydra's errors come back to us (not as Hydra's report) so that a config that does
     # not compose is one line and exit status 2, like every other config error.
     os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    # A sweep interrupted (SIGINT, SIGTERM, SIGHUP) or whose launcher failed still
+    # writes its status table (harness.jobs.finish_sweep) and exits non-zero.
     try:
         main()
     except (HydraException, OmegaConfBaseException) as err:
+        finish_sweep(f"{type(err).__name__}")
         print(describe(err, sys.argv[1:]), file=sys.stderr)
         sys.exit(2)
+    except KeyboardInterrupt as err:
+        finish_sweep(str(err) or "KeyboardInterrupt")
+        print(f"interrupted: {err}".strip(), file=sys.stderr)
+        sys.exit(130)
+    except Exception as err:  # the launcher failed (a worker process lost)
+        if finish_sweep(f"{type(err).__name__}: {err}") is None:
+            raise
+        first = (str(err).strip().splitlines() or [""])[0]
+        print(f"sweep failed: {type(err).__name__}: {first}", file=sys.stderr)
+        sys.exit(1)

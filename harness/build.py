@@ -20,7 +20,16 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 
 from harness import components
-from harness.checks import ConfigError, check_built, check_shared, density_on_grid, target_on_grid
+from harness.checks import (
+    ConfigError,
+    check_built,
+    check_memory,
+    check_resolvable,
+    check_shared,
+    check_unread,
+    density_on_grid,
+    target_on_grid,
+)
 from harness.components import Control, Density, Estimator, ParameterError, Plant
 from harness.densities import Target
 from harness.fokker_planck import FokkerPlanck
@@ -49,6 +58,12 @@ def public_key(cfg: DictConfig, group: str, name: str) -> str:
     value = raw.get(name) if isinstance(raw, dict) else None
     match = _INTERPOLATION.match(value) if isinstance(value, str) else None
     return match.group(1) if match else f"{group}.{name}"
+
+
+def _first_line(err: BaseException) -> str:
+    """``Type: first line of the message`` of an exception."""
+    text = str(err).strip()
+    return f"{type(err).__name__}: {text.splitlines()[0]}" if text else type(err).__name__
 
 
 def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
@@ -82,7 +97,11 @@ def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
             raise ConfigError(f"{group}.{name}", node.get(name), allowed) from None
         if missing:
             raise ConfigError(group, target, f"{target} needs {missing.group(1)}") from None
-        raise
+        raise ConfigError(group, target, _first_line(err)) from None
+    except (ValueError, ArithmeticError, IndexError, KeyError, AttributeError) as err:
+        # a constructor sees only config values and run-time objects: whatever it
+        # raises (a list of the wrong length, an overflow) is a refused config
+        raise ConfigError(group, target, _first_line(err)) from None
     protocol = PROTOCOLS[group]
     if not isinstance(obj, protocol):
         raise ConfigError(f"{group}._target_", target, f"must implement {protocol.__name__}")
@@ -106,13 +125,19 @@ class Experiment:
 def build(cfg: DictConfig) -> Experiment:
     """All components of a closed-loop config, checked.
 
+    In order: every interpolation resolves, every key is read by something, the
+    shared blocks, the memory the run will need (estimated from the components'
+    parameters before any of them allocates), the components, the checks across them.
     Building draws no random numbers: robots are placed by ``plant.start(rng)``.
 
     Raises:
         ConfigError: for the first value that is not allowed.
     """
+    check_resolvable(cfg)
+    check_unread(cfg)
     check_shared(cfg)
     grid = Grid.square(cfg.grid.n, cfg.grid.length)
+    check_memory(cfg, grid)
     target = target_on_grid(component(cfg, "target"), grid)
     init = component(cfg, "init")
     p0 = density_on_grid("init", init, grid)

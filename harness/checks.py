@@ -10,13 +10,28 @@ before building and :func:`check_built` after. A refused value raises
 from __future__ import annotations
 
 import math
+import re
+import shutil
 import warnings
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
+import hydra.utils
 import numpy as np
-from omegaconf import DictConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from harness.components import Control, Density, ParameterError, flag, integer, number
+from harness.components import (
+    Control,
+    Density,
+    ParameterError,
+    default_memory,
+    flag,
+    integer,
+    memory_estimate,
+    number,
+)
 from harness.control import sampled_data_dt_bound
 from harness.densities import Box, Target
 from harness.grid import Grid
@@ -27,6 +42,49 @@ MAX_STEPS = 10_000_000
 
 PROGRESS = ("auto", "on", "off")
 """Values of ``log.progress``."""
+
+MIN_BANDWIDTH_CELLS = 0.1
+"""``kde.bandwidth`` is at least this fraction of the cell size: a kernel much narrower
+than a cell is sampled only at cell centres, so its grid integral is no longer 1 and
+its noise constants ``k ~ 1 / h^2``, ``k_g ~ 1 / h^4`` overflow for tiny ``h``."""
+
+SHARED_BLOCKS = ("grid", "agents", "dynamics", "sim", "kde", "log")
+"""Config blocks every run needs."""
+
+GROUPS = ("plant", "estimator", "control", "target", "init")
+"""Config groups whose node is one component (``_target_`` and its parameters)."""
+
+SHARED_KEYS = frozenset(
+    {
+        "seed",
+        "grid.n",
+        "grid.length",
+        "agents.n",
+        "dynamics.sigma",
+        "sim.dt",
+        "sim.t_final",
+        "kde.bandwidth",
+        "kde.mirror",
+        "kde.method",
+        "log.field_every",
+        "log.positions_every",
+        "log.w2_every",
+        "log.floor_draws",
+        "log.progress",
+        "log.live",
+        "log.live_host",
+        "log.live_port",
+    }
+)
+"""Keys of the shared blocks that the harness reads itself; any other key outside the
+component nodes must be read by a component through interpolation
+(:func:`check_unread`)."""
+
+PRESENTATION_KEYS = ("log.progress", "log.live", "log.live_host", "log.live_port")
+"""Keys that change how a run is shown, not what it computes or logs (left out of the
+config hash, :func:`harness.jobs.config_hash`)."""
+
+_REFERENCE = re.compile(r"\$\{\s*([A-Za-z_][\w.]*)\s*\}")
 
 
 class ConfigError(ValueError):
@@ -75,6 +133,14 @@ def check_shared(cfg: DictConfig) -> None:
     h = _shared("kde.bandwidth", number, kde.get("bandwidth"), 0.0, True)
     if h > length:
         raise ConfigError("kde.bandwidth", h, f"at most the domain side {length}")
+    cell = length / n
+    if h < cell * MIN_BANDWIDTH_CELLS:
+        raise ConfigError(
+            "kde.bandwidth",
+            h,
+            f"at least {MIN_BANDWIDTH_CELLS:g} x the cell size {cell:.3g} = "
+            f"{cell * MIN_BANDWIDTH_CELLS:.3g} (a narrower kernel falls between cell centres)",
+        )
     _shared("kde.mirror", flag, kde.get("mirror"))
     _shared("kde.debias", flag, kde.get("debias"))
     if kde.get("method") not in KDE.METHODS:
@@ -93,13 +159,216 @@ def check_shared(cfg: DictConfig) -> None:
         raise ConfigError("log.progress", log.get("progress"), f"one of {', '.join(PROGRESS)}")
     if dt > t_final:
         raise ConfigError("sim.dt", dt, f"at most sim.t_final = {t_final}")
-    if round(t_final / dt) > MAX_STEPS:
+    if t_final / dt > MAX_STEPS:
         raise ConfigError("sim.t_final", t_final, f"at most {MAX_STEPS:.0e} steps of sim.dt")
     # Euler-Maruyama with reflection: a noise step must be well inside the domain
     if math.sqrt(2 * sigma * dt) > length / 10:
         raise ConfigError(
             "sim.dt", dt, f"small enough that sqrt(2 sigma dt) <= {length / 10} (domain / 10)"
         )
+
+
+def _leaves(node: Any, prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """``(dotted key, raw value)`` of every leaf below ``node`` (lists are leaves)."""
+    if isinstance(node, dict):
+        for key, value in node.items():
+            yield from _leaves(value, f"{prefix}{key}.")
+    else:
+        yield prefix.rstrip("."), node
+
+
+def check_resolvable(cfg: DictConfig) -> None:
+    """Every interpolation of the config (outside ``hydra``) resolves.
+
+    Raises:
+        ConfigError: naming the first key whose value does not resolve, its raw value
+            and OmegaConf's reason (a missing key, a deleted block, a bad resolver); a
+            deleted shared block (``~sim``) is named itself.
+    """
+    for block in SHARED_BLOCKS:
+        if block not in cfg:
+            raise ConfigError(block, None, "a required config block")
+    for name in cfg:
+        if name == "hydra":
+            continue
+        try:
+            node = cfg._get_node(name)
+            if isinstance(node, (DictConfig, ListConfig)):
+                OmegaConf.to_container(node, resolve=True, throw_on_missing=True)
+            else:
+                cfg[name]
+        except OmegaConfBaseException as err:
+            key = str(getattr(err, "full_key", "") or name)
+            raw: Any = OmegaConf.to_container(cfg, resolve=False)
+            try:
+                for part in key.split("."):
+                    raw = raw[part] if isinstance(raw, dict) else raw[int(part)]
+            except (KeyError, ValueError, IndexError, TypeError):
+                raw = None
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise ConfigError(key, raw, f"must resolve ({first})") from None
+
+
+def check_unread(cfg: DictConfig) -> None:
+    """Every key outside the component nodes is read: by the harness itself
+    (:data:`SHARED_KEYS`) or by a component through an interpolation such as
+    ``${filter.process_noise}``. (A key inside a component node that its class does
+    not take is refused when the component is built.)
+
+    Raises:
+        ConfigError: for a key nothing reads (``+grid.foo=1``, ``+foo=1``).
+    """
+    raw = OmegaConf.to_container(cfg, resolve=False)
+    assert isinstance(raw, dict)
+    raw.pop("hydra", None)
+    referenced = set()
+    for _, value in _leaves(raw):
+        if isinstance(value, str):
+            referenced.update(_REFERENCE.findall(value))
+        elif isinstance(value, list):
+            referenced.update(_REFERENCE.findall(repr(value)))
+    for key, value in _leaves({k: v for k, v in raw.items() if k not in GROUPS}):
+        if key in SHARED_KEYS or key in referenced:
+            continue
+        if any(key.startswith(r + ".") for r in referenced):
+            continue
+        raise ConfigError(
+            key, value, "a key nothing reads (no component or shared block has this parameter)"
+        )
+
+
+def memory_available() -> tuple[int, str] | None:
+    """Bytes this process may still allocate, and where the figure comes from:
+    ``MemAvailable`` of ``/proc/meminfo``, lowered to the cgroup's ``memory.max`` minus
+    ``memory.current`` when that is smaller; None when neither can be read.
+    """
+    found: list[tuple[int, str]] = []
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                found.append((int(line.split()[1]) * 1024, "MemAvailable in /proc/meminfo"))
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        used = Path("/sys/fs/cgroup/memory.current").read_text().strip()
+        if limit != "max":
+            found.append((int(limit) - int(used), "the cgroup's memory.max"))
+    except (OSError, ValueError):
+        pass
+    return min(found) if found else None
+
+
+def _size(nbytes: float) -> str:
+    """``nbytes`` in human units (decimal: kB, MB, GB, TB)."""
+    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if nbytes >= scale:
+            return f"{nbytes / scale:.3g} {unit}"
+    return f"{nbytes:.0f} B"
+
+
+def check_memory(cfg: DictConfig, grid: Grid, available: tuple[int, str] | None = None) -> int:
+    """Estimate the memory of the run before building it, and refuse it above what the
+    machine has (:func:`memory_available`, or ``available`` when given).
+
+    The estimate is the sum of the components' own
+    (:func:`harness.components.memory_estimate`: ``memory_estimate`` on the class, from
+    its YAML parameters; a conservative default otherwise) and the shared model (the
+    Fokker-Planck operator and its LU factorisation, the logger's buffers).
+
+    Returns:
+        The estimate (bytes).
+
+    Raises:
+        ConfigError: naming the parameter of the largest component, with the estimate
+            and what is available in the message.
+    """
+    parts: list[tuple[int, str]] = [(default_memory(grid).nbytes + (8 << 20), "grid.n")]
+    for group in GROUPS:
+        node = cfg.get(group)
+        if not isinstance(node, DictConfig) or "_target_" not in node:
+            continue
+        try:
+            cls = hydra.utils.get_class(str(node._target_))
+        except Exception:  # not a class (a factory function) or not importable: built later
+            cls = object
+        resolved = OmegaConf.to_container(node, resolve=True)
+        params = {str(k): v for k, v in resolved.items()} if isinstance(resolved, dict) else {}
+        params.pop("_target_", None)
+        try:
+            estimate = memory_estimate(cls, grid, params)
+        except Exception:  # a bad parameter is refused when the component is built
+            estimate = default_memory(grid)
+        key = _public_key(cfg, group, estimate.parameter) if estimate.parameter else "grid.n"
+        parts.append((estimate.nbytes, key))
+    total = sum(b for b, _ in parts)
+    have = memory_available() if available is None else available
+    if have is not None and total > have[0]:
+        nbytes, key = max(parts)
+        value = OmegaConf.select(cfg, key, default=None)
+        raise ConfigError(
+            key,
+            value,
+            f"the run needs about {_size(total)} of memory ({_size(nbytes)} for this), "
+            f"more than the {_size(have[0])} available ({have[1]})",
+        )
+    return total
+
+
+def _public_key(cfg: DictConfig, group: str, name: str) -> str:
+    node = cfg.get(group)
+    raw = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else {}
+    value = raw.get(name) if isinstance(raw, dict) else None
+    match = _REFERENCE.fullmatch(value.strip()) if isinstance(value, str) else None
+    return match.group(1) if match else f"{group}.{name}"
+
+
+LOG_BYTES_PER_STEP = 400
+"""Bytes of one ``/metrics`` message with its record header (JSON of 12 numbers)."""
+
+
+def log_estimate(cfg: DictConfig, grid: Grid, robots: int) -> int:
+    """Upper estimate of the log's size (bytes) before compression: per step a metrics
+    message; every ``log.field_every`` steps nine float32 grid fields (``p_true``,
+    ``p_kde``, ``p_hat``, two gradients and the velocity, two components each for
+    those); every ``log.positions_every`` steps ``robots`` float32 points (12 bytes).
+    """
+    steps = round(cfg.sim.t_final / cfg.sim.dt)
+    fields = (steps // cfg.log.field_every + 2) * (9 * 4 * grid.size + 9 * 200)
+    points = (steps // cfg.log.positions_every + 2) * (12 * robots + 200) if robots else 0
+    return steps * LOG_BYTES_PER_STEP + fields + points
+
+
+def check_disk(cfg: DictConfig, grid: Grid, robots: int, out_dir: Path) -> int:
+    """Refuse a run whose log (:func:`log_estimate`) is larger than the free space of
+    the file system that will hold ``out_dir``.
+
+    Returns:
+        The estimate (bytes).
+
+    Raises:
+        ConfigError: naming ``log.field_every`` (or ``log.positions_every`` when the
+            robots dominate), with the estimate and the free space.
+    """
+    need = log_estimate(cfg, grid, robots)
+    existing = Path(out_dir).absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    try:
+        free = shutil.disk_usage(existing).free
+    except OSError:
+        return need
+    if need > free:
+        steps = round(cfg.sim.t_final / cfg.sim.dt)
+        points = robots * 12 * steps / cfg.log.positions_every
+        key = "log.positions_every" if points > need / 2 else "log.field_every"
+        raise ConfigError(
+            key,
+            OmegaConf.select(cfg, key),
+            f"the log would need about {_size(need)} ({steps} steps, uncompressed) and "
+            f"{existing} has {_size(free)} free; log less often or shorten sim.t_final",
+        )
+    return need
 
 
 def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
@@ -192,7 +461,11 @@ __all__ = [
     "ConfigError",
     "ConfigWarning",
     "check_built",
+    "check_disk",
+    "check_memory",
+    "check_resolvable",
     "check_shared",
+    "check_unread",
     "density_on_grid",
     "describe",
     "target_on_grid",

@@ -14,7 +14,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.components import ParameterError, flag, integer, number
+from harness.components import (
+    MemoryEstimate,
+    ParameterError,
+    default_memory,
+    flag,
+    integer,
+    number,
+)
 from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.engines import FilterEngine
 from harness.fokker_planck import FokkerPlanck
@@ -222,6 +229,15 @@ class FilterEstimator:
         )
         dt = number("dt", dt, 0.0, strict=True)
         self.engine = FilterEngine.named(method)(grid, model.sigma, dt, measurement)
+
+    @classmethod
+    def memory_estimate(cls, grid: Grid, method: str = "local", **params: object) -> MemoryEstimate:
+        """The engine's (:meth:`FilterEngine.memory_bytes`; dense engines are ``O(M^2)``)
+        plus the grid arrays; the default estimate for an unknown engine name.
+        """
+        engine = FilterEngine.registry.get(method) if isinstance(method, str) else None
+        extra = engine.memory_bytes(grid) if engine is not None else 0
+        return MemoryEstimate(default_memory(grid).nbytes + extra, "method")
 
     def _estimate(self, p_hat: np.ndarray, q_hat: np.ndarray) -> Estimate:
         return Estimate(p_hat, q_hat, *self.engine.traces)

@@ -1,40 +1,137 @@
-"""Jobs of a sweep: per-job status, resume, and the status table at the end of a
-multirun; and the check of a single run's config before Hydra writes anything.
+"""Jobs of a sweep: per-job status, resume by content, isolation, and the status table
+at the end of a multirun; and the checks of a single run before Hydra writes anything.
 
 Hydra cannot resume a sweep. Each job of a multirun therefore
 
-* skips itself when its directory already holds a ``run.mcap`` whose status record
-  says ``completed`` (re-running the same sweep into the same ``hydra.sweep.dir``
-  reruns only the jobs that failed, were killed or never ran);
+* skips itself only when its directory holds a ``run.mcap`` that is complete, reads
+  back whole (chunk CRCs checked, the message count equal to the summary's), has
+  status ``completed``, and whose ``provenance`` record's ``config_sha256`` equals the
+  hash of the job's resolved config (:func:`config_hash`); otherwise it runs again and its
+  ``job_status.json`` says why (``rerun_reason``). A complete log of another config is
+  moved aside (``run.previous-K.mcap``), never overwritten;
+* runs in a process of its own (forked from the launcher's worker, which only waits),
+  so a job killed by the kernel's out-of-memory killer or by hand costs only itself:
+  it is recorded as ``killed`` and the other jobs go on;
 * never raises: a failing job finalises its own log (status ``aborted``), records
-  the error and returns, so the other jobs go on;
+  the error and returns;
 * writes ``job_status.json`` next to its log: job number, overrides, state, reason,
-  wall time (s) of its last real run, and ``runs``, how many times it actually ran.
+  wall time (s) of its last real run, ``runs`` (how many times it actually ran), the
+  config hash and the pid of its process while it runs.
 
 :class:`SweepStatusCallback` (a Hydra callback) collects these files when the
-multirun ends, prints a table (job, overrides, state, wall time) and writes it as
+multirun ends, prints a table (job, overrides, state, runs, wall time) and writes it as
 ``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory; it exits with
-status 1 when a job did not complete.
+status 1 when a job did not complete (invalid, failed, killed, diverged). SIGINT,
+SIGTERM and SIGHUP to the sweep's main process are passed on to the running jobs
+(which finalise their logs as ``aborted``), and the table is written before the
+sweep exits (:func:`finish_sweep`, called by the entry point).
+
+Job directories are named by the job's overrides (:func:`job_dir_name`, the resolver
+``${densityloop.job_dir:...}`` of ``hydra.sweep.subdir``); a name too long for a file
+system or holding a path separator is shortened and made unique with a hash.
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import hashlib
 import json
+import multiprocessing
+import os
+import signal
 import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numba
 from hydra.experimental.callback import Callback
 from mcap.reader import make_reader
-from omegaconf import DictConfig
+from mcap.records import Message, Metadata
+from mcap.stream_reader import StreamReader
+from omegaconf import DictConfig, OmegaConf
 
 from harness.build import build
-from harness.checks import ConfigError
-from harness.run import RunResult, Terminated, run
+from harness.checks import ConfigError, check_disk
+from harness.run import RunResult, Terminated, config_hash, run
 
 STATUS_FILE = "job_status.json"
+LOG_FILE = "run.mcap"
+LOCK_FILE = ".job.lock"
+MAX_NAME_BYTES = 200
+"""Longest job directory name kept as is (file systems allow 255 bytes)."""
+
+NOT_DONE = ("invalid", "aborted", "diverged", "killed", "running", "missing", "truncated")
+
+
+def job_dir_name(override_dirname: str) -> str:
+    """The directory name of a job from Hydra's ``override_dirname``: unchanged when it
+    is a safe file name of at most :data:`MAX_NAME_BYTES` bytes; otherwise a readable
+    prefix, ``#`` and 16 hex digits of its SHA-256, so distinct points stay distinct.
+    """
+    name = override_dirname or "default"
+    safe = "/" not in name and "\0" not in name and name not in (".", "..")
+    if safe and len(name.encode()) <= MAX_NAME_BYTES:
+        return name
+    digest = hashlib.sha256(name.encode()).hexdigest()[:16]
+    prefix = name.replace("/", "_").replace("\0", "_").encode()[:80].decode(errors="ignore")
+    return f"{prefix.lstrip('.')}#{digest}"
+
+
+OmegaConf.register_new_resolver("densityloop.job_dir", job_dir_name, replace=True)
+OmegaConf.register_new_resolver("densityloop.pid", lambda: str(os.getpid()), replace=True)
+
+
+@dataclass(frozen=True)
+class LogCheck:
+    """What :func:`verify_log` found: ``complete`` (a summary and a footer), ``intact``
+    (every record read back with valid CRCs and the summary's message count),
+    ``state`` (of the status record), ``config_hash`` (``config_sha256`` of the
+    provenance record) and ``problem``
+    (why it cannot be trusted, empty when it can).
+    """
+
+    complete: bool
+    intact: bool
+    state: str | None
+    config_hash: str | None
+    problem: str
+
+
+def verify_log(path: Path) -> LogCheck:
+    """Read the whole log back: chunk CRCs checked, messages counted against the
+    summary's statistics, status and config-hash records collected.
+    """
+    if not path.is_file():
+        return LogCheck(False, False, None, None, "no log")
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception as err:
+        return LogCheck(False, False, None, None, f"unfinished or unreadable ({err})")
+    if summary is None or summary.statistics is None:
+        return LogCheck(False, False, None, None, "unfinished (no summary)")
+    expected = summary.statistics.message_count
+    state, digest, count = None, None, 0
+    try:
+        with open(path, "rb") as f:
+            for record in StreamReader(f, validate_crcs=True, record_size_limit=1 << 30).records:
+                if isinstance(record, Message):
+                    count += 1
+                elif isinstance(record, Metadata) and record.name == "status":
+                    state = record.metadata.get("state")
+                elif isinstance(record, Metadata) and record.name == "provenance":
+                    digest = record.metadata.get("config_sha256")
+    except Exception as err:
+        return LogCheck(True, False, state, digest, f"damaged ({type(err).__name__}: {err})")
+    if count != expected:
+        problem = f"damaged ({count} messages read, the summary says {expected})"
+        return LogCheck(True, False, state, digest, problem)
+    return LogCheck(True, True, state, digest, "")
 
 
 def log_state(path: Path) -> str | None:
@@ -55,11 +152,11 @@ def log_state(path: Path) -> str | None:
 
 
 def read_status(job_dir: Path) -> dict[str, Any]:
-    """The job's ``job_status.json`` (empty dict when absent or unreadable)."""
+    """The job's ``job_status.json`` (empty dict when absent, unreadable or malformed)."""
     try:
         data = json.loads((job_dir / STATUS_FILE).read_text())
         return data if isinstance(data, dict) else {}
-    except (OSError, ValueError):
+    except (OSError, ValueError, UnicodeDecodeError):
         return {}
 
 
@@ -67,47 +164,79 @@ def write_status(job_dir: Path, **fields: Any) -> None:
     """Merge ``fields`` into the job's ``job_status.json`` (atomic replace)."""
     data = read_status(job_dir)
     data.update(fields)
-    tmp = job_dir / (STATUS_FILE + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
+    tmp = job_dir / f"{STATUS_FILE}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
     tmp.replace(job_dir / STATUS_FILE)
 
 
+def _int(x: Any, default: int) -> int:
+    return x if isinstance(x, int) and not isinstance(x, bool) else default
+
+
+def _number(x: Any) -> float:
+    return float(x) if isinstance(x, (int, float)) and not isinstance(x, bool) else float("nan")
+
+
 def collect(sweep_dir: Path) -> list[dict[str, Any]]:
-    """One row per job directory below ``sweep_dir`` (job, overrides, state, wall_s)."""
+    """One row per job directory below ``sweep_dir`` (job, dir, overrides, state, runs,
+    wall_s, reason). A job still marked ``running`` when the sweep is over was killed;
+    a log whose status disagrees with the job's file wins; malformed status files are
+    read as far as they make sense.
+    """
     rows = []
-    for status_file in sorted(sweep_dir.glob(f"*/{STATUS_FILE}")):
-        job_dir = status_file.parent
+    dirs = {p.parent for p in sweep_dir.glob(f"*/{STATUS_FILE}")}
+    dirs |= {p.parent for p in sweep_dir.glob(f"*/{LOG_FILE}")}
+    for job_dir in sorted(dirs):
         status = read_status(job_dir)
-        state = log_state(job_dir / "run.mcap") or status.get("state", "missing")
+        state = status.get("state") if isinstance(status.get("state"), str) else "missing"
+        reason = str(status.get("reason", "") or "")
+        if not status:
+            reason = "job_status.json missing or unreadable"
+        logged = log_state(job_dir / LOG_FILE)
+        if state == "running":
+            pid = _int(status.get("pid"), 0)
+            if not (pid and _alive(pid)):
+                state, reason = "killed", reason or "the job's process ended without a status"
+        elif logged is not None and state in ("completed", "missing") and logged != state:
+            state = logged
+        overrides = status.get("overrides", [])
+        if not isinstance(overrides, list):
+            overrides = [str(overrides)]
         rows.append(
             {
-                "job": status.get("job", ""),
+                "job": _int(status.get("job"), -1),
                 "dir": job_dir.name,
-                "overrides": " ".join(status.get("overrides", [])),
+                "overrides": " ".join(str(o) for o in overrides),
                 "state": state,
-                "runs": status.get("runs", 0),
-                "wall_s": status.get("wall_s", float("nan")),
-                "reason": status.get("reason", ""),
+                "runs": _int(status.get("runs"), 0),
+                "wall_s": _number(status.get("wall_s")),
+                "reason": reason,
             }
         )
-    rows.sort(key=lambda r: (r["job"] if isinstance(r["job"], int) else 10**9, r["dir"]))
+    rows.sort(key=lambda r: (_int(r["job"], -1) % (10**9 + 1), str(r["dir"])))
     return rows
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
     """Markdown table of the rows."""
-    lines = ["| job | overrides | state | runs | wall time (s) |", "|---|---|---|---|---|"]
+    lines = [
+        "| job | overrides | state | runs | wall time (s) | reason |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in rows:
         wall = r["wall_s"]
         wall_text = f"{wall:.1f}" if isinstance(wall, (int, float)) else str(wall)
+        reason = str(r.get("reason", "")).replace("|", "/").replace("\n", " ")[:200]
         lines.append(
-            f"| {r['job']} | {r['overrides']} | {r['state']} | {r['runs']} | {wall_text} |"
+            f"| {r['job']} | {r['overrides']} | {r['state']} | {r['runs']} | {wall_text} "
+            f"| {reason} |"
         )
     return "\n".join(lines)
 
 
 def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
     """``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory."""
+    sweep_dir.mkdir(parents=True, exist_ok=True)
     with open(sweep_dir / "sweep_status.csv", "w", newline="") as f:
         writer = csv.DictWriter(
             f, fieldnames=["job", "dir", "overrides", "state", "runs", "wall_s", "reason"]
@@ -117,72 +246,279 @@ def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
     (sweep_dir / "sweep_status.md").write_text(format_table(rows) + "\n")
 
 
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (and is not a zombie)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        return stat.rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+_ACTIVE: dict[str, Any] = {}
+"""The sweep running in this (main) process: its directory and whether its table is
+written; see :func:`finish_sweep`."""
+
+
+def running_jobs(sweep_dir: Path) -> list[int]:
+    """Pids of the jobs of ``sweep_dir`` whose status says ``running``."""
+    pids = []
+    for status_file in sweep_dir.glob(f"*/{STATUS_FILE}"):
+        status = read_status(status_file.parent)
+        pid = _int(status.get("pid"), 0)
+        if status.get("state") == "running" and pid and pid != os.getpid() and _alive(pid):
+            pids.append(pid)
+    return pids
+
+
+def stop_jobs(sweep_dir: Path, signum: int, wait_s: float = 30.0) -> None:
+    """Send ``signum`` to every running job of the sweep and wait (up to ``wait_s``)
+    for them to finalise their logs.
+    """
+    pids = running_jobs(sweep_dir)
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signum)
+    deadline = time.monotonic() + wait_s
+    while pids and time.monotonic() < deadline:
+        pids = [p for p in pids if _alive(p)]
+        time.sleep(0.05)
+
+
+def _main_signal(signum: int, frame: Any) -> None:
+    """The sweep's main process on SIGINT, SIGTERM or SIGHUP: stop the running jobs
+    (each finalises its log as ``aborted``), then end the sweep with KeyboardInterrupt
+    (the launcher stops its workers; :func:`finish_sweep` writes the table).
+    """
+    sweep_dir = _ACTIVE.get("dir")
+    if _ACTIVE.get("stopping"):
+        return
+    _ACTIVE["stopping"] = signal.Signals(signum).name
+    if sweep_dir is not None:
+        forward = signal.SIGINT if signum == signal.SIGINT else signal.SIGTERM
+        stop_jobs(Path(sweep_dir), forward)
+    raise KeyboardInterrupt(f"sweep stopped by {signal.Signals(signum).name}")
+
+
+def finish_sweep(reason: str = "") -> int | None:
+    """Write the status table of the sweep running in this process if it is not written
+    yet (after an interruption or a launcher failure); returns the exit status (1 when a
+    job did not complete, 0 otherwise), or None when no sweep was running.
+    """
+    sweep_dir = _ACTIVE.get("dir")
+    if sweep_dir is None or _ACTIVE.get("written"):
+        return None
+    return _report(Path(sweep_dir), reason or str(_ACTIVE.get("stopping") or ""))
+
+
+def _report(sweep_dir: Path, interrupted: str = "") -> int:
+    rows = collect(sweep_dir)
+    write_table(sweep_dir, rows)
+    _ACTIVE["written"] = True
+    print(f"\nsweep {sweep_dir}: {len(rows)} jobs")
+    print(format_table(rows))
+    bad = [r for r in rows if r["state"] != "completed"]
+    if interrupted:
+        print(f"sweep interrupted: {interrupted}", file=sys.stderr)
+    if bad or interrupted:
+        invalid = [r for r in rows if r["state"] == "invalid"]
+        for r in invalid:
+            print(f"invalid point {r['dir']}: {r['reason']}", file=sys.stderr)
+        print(
+            f"{len(bad)} job(s) did not complete; re-run the same command with "
+            f"hydra.sweep.dir={sweep_dir} to rerun only those",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
 class SweepStatusCallback(Callback):
-    """Prints and writes the status table when a multirun ends."""
+    """Passes signals on to the jobs, and prints and writes the status table when a
+    multirun ends.
+    """
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        """Remember the sweep and take over SIGINT, SIGTERM and SIGHUP."""
+        _ACTIVE.clear()
+        _ACTIVE["dir"] = str(config.hydra.sweep.dir)
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                signal.signal(sig, _main_signal)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         """Collect the jobs' status files; exit 1 when a job did not complete."""
-        sweep_dir = Path(config.hydra.sweep.dir)
-        rows = collect(sweep_dir)
-        write_table(sweep_dir, rows)
-        print(f"\nsweep {sweep_dir}: {len(rows)} jobs")
-        print(format_table(rows))
-        bad = [r for r in rows if r["state"] != "completed"]
-        if bad:
-            print(
-                f"{len(bad)} job(s) did not complete; re-run the same command with "
-                f"hydra.sweep.dir={sweep_dir} to rerun only those",
-                file=sys.stderr,
-            )
-            sys.exit(1)
+        _ACTIVE.setdefault("dir", str(config.hydra.sweep.dir))
+        status = _report(Path(config.hydra.sweep.dir))
+        if status:
+            sys.exit(status)
 
 
 class CheckCallback(Callback):
-    """Checks a single run's config (by building its components) before Hydra creates
-    the output directory; a refused value prints its one line and exits with status 2.
+    """Checks a single run's config (by building its components), that its directory
+    holds no log yet and that the disk has room for the log, before Hydra creates the
+    output directory; a refused value prints its one line and exits with status 2.
     """
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
         """Build the components once to check them; nothing is written."""
         try:
-            build(config)
+            parts = build(config)
+            out = Path(str(config.hydra.run.dir))
+            if (out / LOG_FILE).exists():
+                raise ConfigError(
+                    "hydra.run.dir",
+                    str(out),
+                    "a directory without a run.mcap (it holds one already: not overwritten)",
+                )
+            check_disk(config, parts.grid, int(getattr(parts.plant, "n", 0) or 0), out)
         except ConfigError as err:
             print(err, file=sys.stderr)
             sys.exit(2)
 
 
-def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunResult | None:
-    """One job of a multirun: skip when complete, never raise on failure, keep status.
-
-    Returns the run's result, or None when the job was skipped, invalid or failed (its
-    ``job_status.json`` says which).
-
-    Raises:
-        KeyboardInterrupt, Terminated: after recording ``aborted``, so the sweep stops.
+@contextlib.contextmanager
+def _claim(out: Path) -> Iterator[None]:
+    """Hold the job directory's lock file while the job runs: a second process with the
+    same directory (a concurrent sweep into the same ``hydra.sweep.dir``, or points
+    differing only in presentation keys) waits for the first, then resumes by content.
     """
-    ident = {"job": job, "overrides": overrides}
-    if log_state(out / "run.mcap") == "completed":
-        write_status(out, state="completed", **ident)
-        print(f"job {job}: already completed, skipped ({out})")
-        return None
+    lock = out / LOCK_FILE
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            break
+        except FileExistsError:
+            try:
+                holder = int(lock.read_text().strip() or "0")
+            except (OSError, ValueError):
+                holder = 0
+            if holder and holder != os.getpid() and _alive(holder):
+                time.sleep(0.5)
+                continue
+            with contextlib.suppress(OSError):
+                lock.unlink()  # stale: its process is gone
     try:
-        build(cfg)
-    except ConfigError as err:
-        print(err, file=sys.stderr)
-        write_status(out, state="invalid", reason=str(err), **ident)
-        return None
+        os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            lock.unlink()
+
+
+def _set_aside(log: Path) -> Path:
+    """Move a complete log out of the way (``run.previous-K.mcap``); its new path."""
+    k = 1
+    while (log.parent / f"run.previous-{k}.mcap").exists():
+        k += 1
+    target = log.parent / f"run.previous-{k}.mcap"
+    log.rename(target)
+    return target
+
+
+def _child(cfg: DictConfig, out: Path) -> None:
+    """The job's own process: run it and record the outcome; exit status 0 after any
+    recorded outcome (a killed process has none).
+    """
+    with contextlib.suppress(OSError):  # the out-of-memory killer picks a job, not the sweep
+        Path("/proc/self/oom_score_adj").write_text("500")
     # one core per job: the sweep runs a job per core, so the per-robot kernels stay serial
     numba.set_num_threads(1)
-    runs = read_status(out).get("runs", 0) + 1
-    write_status(out, state="running", runs=runs, reason="", **ident)
     try:
-        result = run(cfg, out)
-    except (KeyboardInterrupt, Terminated):
-        write_status(out, state="aborted", reason="interrupted")
-        raise
+        result = run(cfg, out, overwrite=True)
+    except (KeyboardInterrupt, Terminated) as err:
+        write_status(out, state="aborted", reason=f"interrupted: {err}".strip(), pid=0)
+        os._exit(3)
     except Exception as err:  # recorded, not raised: the other jobs go on
-        write_status(out, state="aborted", reason=f"{type(err).__name__}: {err}")
-        print(f"job {job} failed: {type(err).__name__}: {err}", file=sys.stderr)
-        return None
-    write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
-    return result
+        write_status(out, state="aborted", reason=f"{type(err).__name__}: {err}", pid=0)
+        print(f"job failed: {type(err).__name__}: {err}", file=sys.stderr)
+        os._exit(1)
+    write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s, pid=0)
+    os._exit(0)
+
+
+def _run_isolated(cfg: DictConfig, out: Path) -> int:
+    """Run :func:`_child` in a forked process and wait for it; its exit code (negative:
+    killed by that signal). Signals to this process are passed on to the job.
+    """
+    ctx = multiprocessing.get_context("fork")
+    proc = ctx.Process(target=_child, args=(cfg, out), daemon=False)
+    proc.start()
+    assert proc.pid is not None
+    write_status(out, pid=proc.pid)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+
+        def forward(signum: int, frame: Any) -> None:
+            with contextlib.suppress(OSError):
+                os.kill(proc.pid, signum)  # type: ignore[arg-type]
+
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            previous[sig] = signal.signal(sig, forward)
+    try:
+        proc.join()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return proc.exitcode if proc.exitcode is not None else -1
+
+
+def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunResult | None:
+    """One job of a multirun: skip when its log is complete, intact and of this config;
+    otherwise run it in a process of its own; never raise on failure; keep status.
+
+    Returns:
+        None always (the job's ``job_status.json`` and log hold the outcome).
+    """
+    out.mkdir(parents=True, exist_ok=True)
+    digest = config_hash(cfg)
+    ident = {"job": job, "overrides": overrides, "config_sha256": digest}
+    with _claim(out):
+        log = out / LOG_FILE
+        check = verify_log(log)
+        if check.intact and check.state == "completed" and check.config_hash == digest:
+            write_status(out, state="completed", reason="", **ident)
+            print(f"job {job}: already completed, skipped ({out})")
+            return None
+        if not check.intact:
+            why = check.problem
+        elif check.config_hash != digest:
+            why = "the log holds another config"
+        else:
+            why = f"the log's status is {check.state}"
+        try:
+            build(cfg)
+        except ConfigError as err:
+            print(err, file=sys.stderr)
+            write_status(out, state="invalid", reason=str(err), pid=0, **ident)
+            return None
+        if check.complete and check.state == "completed":
+            moved = _set_aside(log)  # a complete log is never overwritten
+            why += f" (kept as {moved.name})"
+        runs = _int(read_status(out).get("runs"), 0) + 1
+        write_status(out, state="running", runs=runs, reason="", rerun_reason=why, pid=0, **ident)
+        try:
+            code = _run_isolated(cfg, out)
+        except OSError as err:  # no process could be forked: run here
+            print(f"job {job}: cannot fork ({err}); running in the worker", file=sys.stderr)
+            code = 0
+            try:
+                result = run(cfg, out, overwrite=True)
+                write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
+            except Exception as err2:
+                write_status(out, state="aborted", reason=f"{type(err2).__name__}: {err2}")
+        if code < 0:
+            name = signal.Signals(-code).name
+            hint = " (the out-of-memory killer?)" if -code == signal.SIGKILL else ""
+            write_status(out, state="killed", reason=f"killed by {name}{hint}", pid=0)
+            print(f"job {job} was killed by {name}{hint}", file=sys.stderr)
+        elif read_status(out).get("state") == "running":
+            write_status(out, state="aborted", reason=f"exited with status {code}", pid=0)
+    return None

@@ -25,7 +25,16 @@ import numpy as np
 import scipy.sparse as sp
 
 from harness.agents import Swarm
-from harness.components import Control, Density, flag, integer, number, require
+from harness.components import (
+    Control,
+    Density,
+    MemoryEstimate,
+    default_memory,
+    flag,
+    integer,
+    number,
+    require,
+)
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE, noise_constants
@@ -68,6 +77,17 @@ class Agents:
         self.smoother = Smoother(grid, h, mirror)
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
+
+    BYTES_PER_ROBOT = 200
+    """Per robot: positions, noise and interpolation temporaries (float64, 2 x 8 bytes
+    each, about eight of them), the KDE's binning indices and weights, and the logged
+    point cloud (float32 x, y, z and its serialised copy)."""
+
+    @classmethod
+    def memory_estimate(cls, grid: Grid, n: int = 1, **params: object) -> MemoryEstimate:
+        """``BYTES_PER_ROBOT n`` plus the grid arrays (:func:`default_memory`)."""
+        robots = n if isinstance(n, int) and n > 0 else 1
+        return MemoryEstimate(cls.BYTES_PER_ROBOT * robots + default_memory(grid).nbytes, "n")
 
     @property
     def positions(self) -> np.ndarray | None:

@@ -1,13 +1,17 @@
 import csv
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
+import warnings
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from analysis.load import load_run
+from analysis.load import LogWarning, load_run
 from analysis.sweep import analyse, value
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -179,3 +183,95 @@ def test_analysis_groups_by_the_logged_config_not_the_command_line(tmp_path):
     from analysis.sweep import varied
 
     assert "control._target_" in varied(rows) and "seed" not in varied(rows)
+
+
+def _wait_for_running_job(sweep_dir, needle, timeout=180):
+    """The pid of the job process of the job whose directory contains ``needle``, once
+    its log is being written."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        for status_file in Path(sweep_dir).glob("*/job_status.json"):
+            if needle not in status_file.parent.name:
+                continue
+            try:
+                status = json.loads(status_file.read_text())
+            except ValueError:
+                continue
+            log = status_file.parent / "run.mcap"
+            if status.get("state") == "running" and status.get("pid") and log.exists():
+                if log.stat().st_size > 200_000:
+                    return status["pid"], status_file.parent
+        time.sleep(0.05)
+    raise AssertionError("the job never started")
+
+
+LONG = ["grid.n=10", "agents.n=100", "sim.dt=0.02", "log.progress=off", "log.field_every=1"]
+
+
+def test_sigkill_of_a_job_costs_only_that_job_and_rerun_runs_only_it(tmp_path):
+    """Fault injection: the out-of-memory killer's SIGKILL to the process running one job
+    of a joblib sweep; the other jobs finish, the table is written, and re-running the
+    same command runs only the killed job."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "experiments.closed_loop",
+        "-m",
+        "sim.t_final=0.1,0.2,30",
+        *LONG,
+        f"hydra.sweep.dir={tmp_path}",
+        "hydra.launcher.n_jobs=2",
+    ]
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    pid, victim = _wait_for_running_job(tmp_path, "sim.t_final=30")
+    os.kill(pid, signal.SIGKILL)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 1, err
+    rows = {r["dir"]: r for r in csv.DictReader(open(tmp_path / "sweep_status.csv"))}
+    assert len(rows) == 3
+    assert rows[victim.name]["state"] == "killed" and "SIGKILL" in rows[victim.name]["reason"]
+    others = [r for d, r in rows.items() if d != victim.name]
+    assert [r["state"] for r in others] == ["completed", "completed"]
+    runs_before = {d: r["runs"] for d, r in rows.items()}
+    again = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert again.returncode == 0, again.stderr
+    rows = {r["dir"]: r for r in csv.DictReader(open(tmp_path / "sweep_status.csv"))}
+    assert {d: r["runs"] for d, r in rows.items()} == {
+        d: str(int(n) + (d == victim.name)) for d, n in runs_before.items()
+    }
+    assert all(r["state"] == "completed" for r in rows.values())
+
+
+def test_sigterm_to_the_sweep_stops_its_jobs_and_writes_the_table(tmp_path):
+    cmd = [
+        sys.executable,
+        "-m",
+        "experiments.closed_loop",
+        "-m",
+        "seed=1,2",
+        "sim.t_final=1000",
+        *LONG,
+        f"hydra.sweep.dir={tmp_path}",
+    ]
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    _wait_for_running_job(tmp_path, "seed=")
+    time.sleep(1.0)
+    statuses = [json.loads(p.read_text()) for p in tmp_path.glob("*/job_status.json")]
+    pids = [s["pid"] for s in statuses if s.get("pid")]
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=120)
+    assert proc.returncode != 0
+    for p in pids:  # no orphaned job keeps running
+        assert (
+            not Path(f"/proc/{p}").exists() or "Z" in Path(f"/proc/{p}/stat").read_text().split()[2]
+        )
+    rows = list(csv.DictReader(open(tmp_path / "sweep_status.csv")))
+    assert len(rows) >= 1 and all(r["state"] != "completed" for r in rows)
+    for d in job_dirs(tmp_path):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", LogWarning)
+            assert load_run(d).state == "aborted"

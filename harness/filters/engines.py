@@ -18,6 +18,7 @@ from typing import ClassVar
 import numpy as np
 import scipy.sparse as sp
 
+from harness.components import sparse_lu_bytes
 from harness.filters.common import Integrator, MeasurementModel
 from harness.filters.local import LocalFilters
 from harness.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
@@ -50,6 +51,13 @@ class FilterEngine:
     def __init__(self, grid: Grid, sigma: float, dt: float, measurement: MeasurementModel):
         self.grid, self.sigma, self.dt, self.measurement = grid, sigma, dt, measurement
 
+    @classmethod
+    def memory_bytes(cls, grid: Grid) -> int:
+        """Up-front estimate of the bytes the engine holds on ``grid`` (an upper
+        estimate; an engine that does not say is assumed to hold 64 grid fields).
+        """
+        return 64 * 8 * 3 * grid.size
+
     def initialize(self, p_kde: np.ndarray, grad_kde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Start both filters from the first KDE; returns ``(p_hat, q_hat)``."""
         raise NotImplementedError
@@ -77,6 +85,13 @@ class LocalEngine(FilterEngine, name="local"):
         super().__init__(grid, sigma, dt, measurement)
         self.filters = LocalFilters(grid, sigma, dt, measurement)
 
+    @classmethod
+    def memory_bytes(cls, grid: Grid) -> int:
+        """Diagonal covariances and a lagged sparse LU of the Poisson operator: 64 grid
+        fields and two sparse LU factorisations (:func:`sparse_lu_bytes`).
+        """
+        return 64 * 8 * 3 * grid.size + 2 * sparse_lu_bytes(grid.size)
+
     def initialize(self, p_kde: np.ndarray, grad_kde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`LocalFilters.initialize`."""
         return self.filters.initialize(p_kde, grad_kde)
@@ -98,6 +113,16 @@ class ReferenceEngine(FilterEngine, name="reference"):
     """The dense grid filters, numpy engine (:mod:`harness.filters.reference`)."""
 
     backend = "numpy"
+    dense_copies = 20
+    """Dense ``M x M`` float64 arrays held at once: density filter ``P``, ``F``, ``Q`` and
+    temporaries (3), gradient filter (``2M`` states: 4 each for ``P``, ``F`` and a
+    temporary, 12), the integration operator's pseudo-inverse (``2M x M``, 2), and
+    the dense solve of the transition (3)."""
+
+    @classmethod
+    def memory_bytes(cls, grid: Grid) -> int:
+        """``dense_copies`` dense ``M x M`` float64 arrays (``O(M^2)``, ``M`` cells)."""
+        return cls.dense_copies * 8 * grid.size**2 + 64 * 8 * 3 * grid.size
 
     def __init__(self, grid: Grid, sigma: float, dt: float, measurement: MeasurementModel):
         super().__init__(grid, sigma, dt, measurement)
@@ -132,3 +157,4 @@ class FilterpyEngine(ReferenceEngine, name="filterpy"):
     """The dense grid filters with filterpy's ``KalmanFilter`` doing the algebra."""
 
     backend = "filterpy"
+    dense_copies = 40  # filterpy keeps its own F, Q, H, B, K, S and prior/post copies
