@@ -47,6 +47,7 @@ bench: $(STAMP) ## Speed benchmarks, each figure next to its target
 RUN_DIR := outputs/reproduce
 
 reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write its figures to figures/
+	rm -rf $(RUN_DIR) $(RUN_DIR)_meanfield  # a run never overwrites a log: start afresh
 	$(PY) -m experiments.closed_loop hydra.run.dir=$(RUN_DIR)
 	$(PY) -m analysis.figures $(RUN_DIR) --out figures
 	$(PY) -m experiments.closed_loop plant=meanfield estimator=exact log.field_every=100 \
