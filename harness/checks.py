@@ -66,6 +66,7 @@ SHARED_KEYS = frozenset(
         "kde.bandwidth",
         "kde.mirror",
         "kde.method",
+        "kde.debias",
         "log.field_every",
         "log.positions_every",
         "log.w2_every",

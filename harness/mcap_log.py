@@ -156,7 +156,10 @@ class McapLogger:
         self.field_every, self.positions_every = field_every, positions_every
         self.total_steps = total_steps
         self._file = open(self.path, "wb")
-        self._writer = McapWriter(self._file, compression=CompressionType.ZSTD)
+        # data-section CRC too: metadata records outside chunks are then protected as well
+        self._writer = McapWriter(
+            self._file, compression=CompressionType.ZSTD, enable_data_crcs=True
+        )
         self._writer.start(profile="", library="densityloop")
         self._channels: dict[str, int] = {}
         # register_schema(self, ...) calls self.register_schema, which keeps each schema
