@@ -1,0 +1,923 @@
+"""Distributed density filter and decentralised control (issue 14).
+
+The centralised loop forms one KDE of every position. But the KDE is a mean over robots,
+
+    p_KDE(x) = (1/N) sum_i phi_i(x),        phi_i(x) = K_h(x - X_i)  (with wall images),
+
+so each robot can *track* it from its own kernel ``phi_i`` and messages from its
+neighbours (Zheng and Lin, arXiv 2009.05366 / 2106.05318), run the project's fast density
+filter on what it tracks, and move by the paper's law evaluated on its own estimate.
+
+Communication graph. Robots ``i != j`` are neighbours when ``|X_i - X_j| <= r`` (radius
+graph) or when either is among the other's ``k`` nearest (symmetrised k-nearest graph);
+recomputed every step from the positions (``scipy.spatial.cKDTree``). ``A`` is the
+symmetric 0/1 adjacency, ``D = diag(deg)``, ``L = D - A`` the graph Laplacian with
+eigenvalues ``0 = lambda_1 <= lambda_2 <= ... <= lambda_N``; ``lambda_2 > 0`` iff the
+graph is connected (the algebraic connectivity).
+
+Dynamic average consensus (first-order form). Each robot keeps ``z_i`` (``F`` fields of
+``M`` cells: its kernel, and with the per-robot gradient filter also the kernel's two
+analytic derivatives). With ``W_t = I - eps_t L_t`` and ``m`` rounds per step,
+
+    z_i(0)     = [W_0^m phi(0)]_i,
+    z(t + 1)   = W_{t+1}^m ( z(t) + phi(t + 1) - phi(t) )                          (DAC)
+
+(rows are robots; ``phi(t)`` the ``N x FM`` matrix of the robots' kernels at ``X(t)``).
+Robot ``i`` needs ``z_j`` of its neighbours once per round: one message of ``F M`` floats
+per neighbour per round.
+
+*Invariant.* ``L`` is symmetric with zero row and column sums, so ``1^T W = 1^T`` for
+every graph and gain: ``1^T z(t + 1) = 1^T z(t) + 1^T phi(t + 1) - 1^T phi(t)``, and by
+induction from ``1^T z(0) = 1^T phi(0)``,
+
+    (1/N) sum_i z_i(t) = (1/N) sum_i phi_i(t) = p_KDE(t)     at every step, exactly,
+
+whatever the graph does (it may change, disconnect, reconnect). The robots' mean
+observation is the centralised one; consensus only distributes it.
+
+*Error dynamics.* Let ``Pi = I - 1 1^T / N`` and ``e = Pi z`` the disagreement
+(``z_i - p_KDE``). ``Pi`` commutes with ``W`` (both are polynomials in symmetric,
+constant-preserving operators), so
+
+    e(t + 1) = W^m ( e(t) + Pi (phi(t + 1) - phi(t)) ),
+    ||e(t + 1)|| <= rho^m ( ||e(t)|| + ||Pi Delta phi|| ),
+    rho = max(|1 - eps lambda_2|, |1 - eps lambda_N|)                (spectral radius on 1^perp).
+
+On a fixed connected graph with a static swarm the error decays geometrically at the
+rate ``rho^m`` per step, which is ``(1 - eps lambda_2)^m`` whenever ``eps (lambda_2 +
+lambda_N) <= 2`` (always true for the default gain below when the graph is not
+bipartite-like; the test uses a ring and checks both). With moving robots the error is
+input-to-state stable with respect to the kernels' per-step change: asymptotically
+``||e|| <= rho^m / (1 - rho^m) sup ||Pi Delta phi||``. Robots move ``~ 1e-3`` per step
+against a bandwidth ``h = 0.04``, so ``Delta phi`` is small and one round per step
+already tracks; the disconnected case (``lambda_2 = 0``) keeps the component averages
+instead (each component tracks the mean over its members).
+
+*Gain.* ``eps = gain / (1 + d_max)`` with ``d_max`` the largest degree of the current
+graph and ``0 < gain <= 1`` (default 1). Then every entry of ``W`` is ``>= 0`` (``1 - eps
+d_i >= 1 / (1 + d_max)``), ``W`` is doubly stochastic, and Gershgorin (``lambda_N <= 2
+d_max``) gives ``|1 - eps lambda_N| < 1``: stable on every graph. On the complete graph
+``eps = 1/N`` and ``W = 1 1^T / N``: one round is exact consensus, which the test of
+equality with the centralised filter uses. A robot with no neighbours has ``W_ii = 1``
+and tracks its own kernel.
+
+*Why first order, not proportional-integral.* The PI form (Freeman, Yang and Lynch
+2006) tolerates arbitrary initial states and robots joining or leaving, at the price of
+a second state per robot (twice the memory and the messages) and a slower, oscillatory
+transient. Here every robot starts with ``z_i(0) = phi_i(0)`` (it knows its own
+position) and the swarm is fixed, so the first-order form keeps the invariant exactly
+and its error is the ISS bound above.
+
+Per-robot filters. Each robot runs the density filter of :mod:`harness.filters.local`
+on ``y_i = z_i`` (density part): the same predict (exact state transition ``(I - dt
+A)^{-1}`` by the same Neumann series, variances by ``F1 o F1``) and diagonal update with
+``R = r_scale k diag(max(y_i, r_floor))``, vectorised over robots (compiled loop, one
+robot per iteration, arrays ``(N, M)``). The gradient estimate is either
+
+* ``gradient="grid"`` (default): ``q_hat_i = G p_hat_i``, the grid gradient of the
+  robot's own density estimate; only the density kernel is tracked (``F = 1``); or
+* ``gradient="filter"``: the fast gradient filter per robot on the tracked analytic
+  kernel gradient (``F = 3``), with the weighted-Poisson mean update solved by batched
+  conjugate gradients sharing one preconditioner (a sparse LU of ``G^T diag(c_bar) G``,
+  ``c_bar`` the robots' mean information, refactored when the iteration count grows).
+
+The applied ``A`` is the Fokker-Planck matrix of the velocity the robots are modelled to
+follow; in the decentralised loop every robot moves on its own field, and the estimator
+takes whatever ``A`` the caller supplies (it is the filters' model, shared by all).
+
+Decentralised control. Robot ``i`` moves with the paper's law (eq. ``modified density
+feedback law using estimates``) evaluated from its own estimates, at its own position:
+the bilinear interpolant at ``X_i`` of the law's cell-centre values built from ``(p_hat_i,
+q_hat_i)``, exactly what a centralised robot does with the broadcast field (so with exact
+consensus the two loops coincide; only the four cells around ``X_i`` are evaluated).
+
+Messages. A *message* is one vector of ``F M`` float64 values sent by one robot to one
+neighbour in one consensus round. Per robot per step that is ``m deg_i`` messages, i.e.
+``m deg_i F M`` floats or ``8 m deg_i F M`` bytes; :func:`message_counts` reports the
+mean over robots (with a broadcast medium one transmission per round would do).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
+import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
+
+from harness.densities import Target
+from harness.filters.common import FilterSettings, MeasurementModel
+from harness.filters.local import squared_transition
+from harness.fokker_planck import _MAX_SERIES_TERMS, _series_terms
+from harness.grid import Grid
+from harness.kde import _kernel_1d
+
+# --------------------------------------------------------------------------------------
+# communication graph
+
+
+def communication_graph(
+    positions: np.ndarray, radius: float | None = None, k_nearest: int | None = None
+) -> sp.csr_matrix:
+    """Symmetric 0/1 adjacency of the robots' communication graph, no self-loops.
+
+    Args:
+        positions: Robot positions ``(2, N)`` (length).
+        radius: Neighbours within this distance (length), inclusive.
+        k_nearest: Or: each robot links to its ``k`` nearest, then symmetrised (``i ~ j``
+            if either is among the other's ``k`` nearest). Exactly one of the two.
+
+    Returns:
+        ``(N, N)`` CSR matrix with sorted indices and float entries 1.
+    """
+    if (radius is None) == (k_nearest is None):
+        raise ValueError("give exactly one of radius and k_nearest")
+    pts = np.asarray(positions, dtype=float).T
+    n = pts.shape[0]
+    tree = cKDTree(pts)
+    if radius is not None:
+        if not radius >= 0:
+            raise ValueError(f"radius must be >= 0, got {radius}")
+        pairs = tree.query_pairs(radius, output_type="ndarray")
+        rows, cols = pairs[:, 0], pairs[:, 1]
+    else:
+        assert k_nearest is not None
+        k = min(int(k_nearest), n - 1)
+        if k < 0:
+            raise ValueError(f"k_nearest must be >= 0, got {k_nearest}")
+        if k == 0:
+            rows = cols = np.empty(0, dtype=np.intp)
+        else:
+            _, idx = tree.query(pts, k + 1)
+            rows = np.repeat(np.arange(n), k)
+            cols = idx[:, 1:].ravel()  # the first neighbour is the robot itself
+    adj = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)).tocsr()
+    adj = adj + adj.T
+    adj.data[:] = 1.0  # duplicates (mutual k-nearest) summed to 2
+    adj.setdiag(0.0)
+    adj.eliminate_zeros()
+    adj.sort_indices()
+    return adj.tocsr()
+
+
+def laplacian(adj: sp.csr_matrix) -> sp.csr_matrix:
+    """Graph Laplacian ``L = D - A`` (CSR)."""
+    deg = np.asarray(adj.sum(axis=1)).ravel()
+    return (sp.diags(deg) - adj).tocsr()
+
+
+def n_components(adj: sp.csr_matrix) -> int:
+    """Number of connected components of the graph."""
+    return int(csgraph.connected_components(adj, directed=False)[0])
+
+
+def algebraic_connectivity(adj: sp.csr_matrix, dense_max: int = 400) -> float:
+    """``lambda_2(L)``, the second-smallest Laplacian eigenvalue (0 if disconnected).
+
+    Dense ``eigvalsh`` up to ``dense_max`` robots; above, ARPACK in shift-invert mode
+    about ``-1e-3`` (the two eigenvalues nearest 0 of ``L``, factorised once).
+    """
+    n = adj.shape[0]
+    if n < 2 or n_components(adj) > 1:
+        return 0.0
+    lap = laplacian(adj)
+    if n <= dense_max:
+        return float(np.linalg.eigvalsh(lap.toarray())[1])
+    vals = spla.eigsh(lap.tocsc(), k=2, sigma=-1e-3, which="LM", return_eigenvectors=False)
+    return float(np.sort(vals)[1])
+
+
+def consensus_weights(adj: sp.csr_matrix, gain: float = 1.0) -> tuple[sp.csr_matrix, float]:
+    """``W = I - eps L`` with ``eps = gain / (1 + d_max)`` (see the module docstring).
+
+    Returns:
+        ``(W, eps)``; ``W`` is symmetric, doubly stochastic and non-negative for
+        ``0 < gain <= 1``.
+    """
+    if not 0 < gain <= 1:
+        raise ValueError(f"consensus gain must be in (0, 1], got {gain}")
+    deg = np.asarray(adj.sum(axis=1)).ravel()
+    eps = gain / (1.0 + (deg.max() if deg.size else 0.0))
+    w = (sp.identity(adj.shape[0], format="csr") - eps * laplacian(adj)).tocsr()
+    w.sort_indices()
+    return w, float(eps)
+
+
+# --------------------------------------------------------------------------------------
+# compiled kernels (plain numpy statements in the docstrings; tests compare)
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _spmm(indptr, indices, data, z, out):  # pragma: no cover - compiled
+    """``out = W z`` for CSR ``W`` and dense ``z`` ``(N, F)``: rows in parallel, each
+    row's sum in CSR order (deterministic for any thread count)."""
+    n, f = z.shape
+    for i in numba.prange(n):
+        for c in range(f):
+            out[i, c] = 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            w = data[k]
+            for c in range(f):
+                out[i, c] += w * z[j, c]
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _add_kernel_increment(z, ky, kx, ky_old, kx_old, sign_old):  # pragma: no cover
+    """``z[i] += outer(ky[i], kx[i]) + sign_old outer(ky_old[i], kx_old[i])`` (flattened
+    ``(ny, nx)``), i.e. ``z += phi(t+1) - phi(t)`` for ``sign_old = -1``."""
+    n, ny = ky.shape
+    nx = kx.shape[1]
+    for i in numba.prange(n):
+        for j in range(ny):
+            a = ky[i, j]
+            b = sign_old * ky_old[i, j]
+            base = j * nx
+            for c in range(nx):
+                z[i, base + c] += a * kx[i, c] + b * kx_old[i, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _series(indptr, indices, data, x, terms, total, term, tmp):  # pragma: no cover
+    """``total = sum_{k <= terms} (dt A)^k x`` (``data`` holds ``dt A``), one robot."""
+    m = x.size
+    for r in range(m):
+        total[r] = x[r]
+        term[r] = x[r]
+    for _ in range(terms):
+        for r in range(m):
+            s = 0.0
+            for k in range(indptr[r], indptr[r + 1]):
+                s += data[k] * term[indices[k]]
+            tmp[r] = s
+        for r in range(m):
+            term[r] = tmp[r]
+            total[r] += tmp[r]
+
+
+@numba.njit(cache=True, nogil=True)
+def _sq_apply(indptr, indices, sq, boost, v, out):  # pragma: no cover
+    """``out = sq @ v + boost v``: ``(F1 o F1) v`` of ``squared_transition``."""
+    for r in range(v.size):
+        s = boost[r] * v[r]
+        for k in range(indptr[r], indptr[r + 1]):
+            s += sq[k] * v[indices[k]]
+        out[r] = s
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _density_filter_step(
+    x, d, y, indptr, indices, adt, sq, boost, terms, qk, rk, r_floor
+):  # pragma: no cover
+    """Per robot ``i`` (rows), in place, the density part of ``LocalFilters.step``:
+
+        x^- = sum_k (dt A)^k x,  d^- = (F1 o F1) d + q dt k,
+        r = r_scale k max(y, r_floor),  d = 1 / (1/d^- + 1/r),  x = x^- + d / r (y - x^-).
+    """
+    n, m = x.shape
+    for i in numba.prange(n):
+        total = np.empty(m)
+        term = np.empty(m)
+        tmp = np.empty(m)
+        _series(indptr, indices, adt, x[i], terms, total, term, tmp)
+        _sq_apply(indptr, indices, sq, boost, d[i], tmp)
+        for c in range(m):
+            dm = tmp[c] + qk
+            r = rk * max(y[i, c], r_floor)
+            dp = 1.0 / (1.0 / dm + 1.0 / r)
+            d[i, c] = dp
+            x[i, c] = total[c] + dp / r * (y[i, c] - total[c])
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _gradient_predict(xg, cg, indptr, indices, adt, sq, boost, terms, qkg):  # pragma: no cover
+    """Per robot, in place: ``x_g^- = F x_g`` (series) and, per gradient component,
+    ``1/C^- = (F1 o F1)(1/C) + q dt k_g`` (``cg`` rows hold both components, ``(N, 2M)``).
+    """
+    n, m = xg.shape
+    for i in numba.prange(n):
+        total = np.empty(m)
+        term = np.empty(m)
+        tmp = np.empty(m)
+        inv = np.empty(m)
+        _series(indptr, indices, adt, xg[i], terms, total, term, tmp)
+        for c in range(m):
+            xg[i, c] = total[c]
+        for comp in range(2):
+            for c in range(m):
+                inv[c] = 1.0 / cg[i, comp * m + c]
+            _sq_apply(indptr, indices, sq, boost, inv, tmp)
+            for c in range(m):
+                cg[i, comp * m + c] = 1.0 / (tmp[c] + qkg)
+
+
+@numba.njit(cache=True, nogil=True)
+def _grad_row(f, nx, ny, dx, dy, out):  # pragma: no cover
+    """``out = G f`` for one flattened field (``Grid.gradient``: central differences,
+    reflecting ghosts), ``out`` of length ``2M``."""
+    m = nx * ny
+    for j in range(ny):
+        jm = max(j - 1, 0)
+        jp = min(j + 1, ny - 1)
+        for i in range(nx):
+            im = max(i - 1, 0)
+            ip = min(i + 1, nx - 1)
+            out[j * nx + i] = (f[j * nx + ip] - f[j * nx + im]) / (2.0 * dx)
+            out[m + j * nx + i] = (f[jp * nx + i] - f[jm * nx + i]) / (2.0 * dy)
+
+
+@numba.njit(cache=True, nogil=True)
+def _grad_t_row(g, nx, ny, dx, dy, out):  # pragma: no cover
+    """``out = G^T g`` for one stacked gradient ``g`` (length ``2M``)."""
+    m = nx * ny
+    for r in range(m):
+        out[r] = 0.0
+    for j in range(ny):
+        jm = max(j - 1, 0)
+        jp = min(j + 1, ny - 1)
+        for i in range(nx):
+            im = max(i - 1, 0)
+            ip = min(i + 1, nx - 1)
+            a = g[j * nx + i] / (2.0 * dx)
+            out[j * nx + ip] += a
+            out[j * nx + im] -= a
+            b = g[m + j * nx + i] / (2.0 * dy)
+            out[jp * nx + i] += b
+            out[jm * nx + i] -= b
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _weighted_laplacian(delta, c, nx, ny, dx, dy, out):  # pragma: no cover
+    """``out_i = G^T diag(c_i) G delta_i`` per robot row."""
+    n, m = delta.shape
+    for i in numba.prange(n):
+        g = np.empty(2 * m)
+        _grad_row(delta[i], nx, ny, dx, dy, g)
+        for r in range(2 * m):
+            g[r] *= c[i, r]
+        _grad_t_row(g, nx, ny, dx, dy, out[i])
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _gradient_rhs(xg, yg, w, nx, ny, dx, dy, out):  # pragma: no cover
+    """``out_i = G^T (w_i o (y_g,i - G x_g,i))``: the weighted-Poisson right-hand side."""
+    n, m = xg.shape
+    for i in numba.prange(n):
+        g = np.empty(2 * m)
+        _grad_row(xg[i], nx, ny, dx, dy, g)
+        for r in range(2 * m):
+            g[r] = w[i, r] * (yg[i, r] - g[r])
+        _grad_t_row(g, nx, ny, dx, dy, out[i])
+
+
+# --------------------------------------------------------------------------------------
+# per-robot kernels
+
+
+def kernel_factors(
+    grid: Grid, positions: np.ndarray, bandwidth: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """1-D kernel factors per robot, ``(kx, dkx, ky, dky)`` of shapes ``(N, nx)``,
+    ``(N, nx)``, ``(N, ny)``, ``(N, ny)``, with the wall images of :mod:`harness.kde`.
+
+    Robot ``i``'s kernel on the grid is ``phi_i = outer(ky[i], kx[i])`` (1 / length^2),
+    its gradient ``(outer(ky[i], dkx[i]), outer(dky[i], kx[i]))`` (1 / length^3); their
+    means over robots are :meth:`harness.kde.KDE.exact`.
+    """
+    g = grid
+    kx, dkx = _kernel_1d(positions[0], g.x, bandwidth, g.x0, g.x1, True)
+    ky, dky = _kernel_1d(positions[1], g.y, bandwidth, g.y0, g.y1, True)
+    return kx, dkx, ky, dky
+
+
+def robot_kernels(
+    grid: Grid, positions: np.ndarray, bandwidth: float, gradient: bool = False
+) -> np.ndarray:
+    """The robots' own kernels ``phi_i = K_h(x - X_i)`` on the grid, shape ``(N, M)``
+    (1 / length^2), or with ``gradient`` ``(N, 3M)``: ``[phi_i, d_x phi_i, d_y phi_i]``.
+    """
+    kx, dkx, ky, dky = kernel_factors(grid, positions, bandwidth)
+    n = kx.shape[0]
+    phi = (ky[:, :, None] * kx[:, None, :]).reshape(n, -1)
+    if not gradient:
+        return phi
+    gx = (ky[:, :, None] * dkx[:, None, :]).reshape(n, -1)
+    gy = (dky[:, :, None] * kx[:, None, :]).reshape(n, -1)
+    return np.concatenate([phi, gx, gy], axis=1)
+
+
+# --------------------------------------------------------------------------------------
+# dynamic average consensus
+
+
+class DynamicAverageConsensus:
+    """First-order dynamic average consensus on the robots' kernels (eq. DAC in the
+    module docstring), state ``z`` of shape ``(N, F M)``.
+
+    Args:
+        grid: The grid.
+        bandwidth: Kernel bandwidth ``h`` (length).
+        gradient: Track the kernel's gradient as well (``F = 3``) or not (``F = 1``).
+        rounds: Consensus rounds per step ``m >= 1``.
+        gain: ``eps = gain / (1 + d_max)``, ``0 < gain <= 1``.
+    """
+
+    def __init__(
+        self, grid: Grid, bandwidth: float, gradient: bool = False, rounds: int = 1, gain: float = 1.0
+    ) -> None:
+        if rounds < 1:
+            raise ValueError(f"consensus rounds must be >= 1, got {rounds}")
+        self.grid, self.bandwidth, self.gradient = grid, bandwidth, gradient
+        self.rounds, self.gain = int(rounds), gain
+        self.fields = 3 if gradient else 1
+        self.z: np.ndarray | None = None
+        self._buf: np.ndarray | None = None
+        self._factors: tuple[np.ndarray, ...] | None = None
+        self.eps = 0.0
+
+    def _increment(self, factors: tuple[np.ndarray, ...], old: tuple[np.ndarray, ...] | None):
+        assert self.z is not None
+        m = self.grid.size
+        kx, dkx, ky, dky = factors
+        parts = [(ky, kx)]
+        if self.gradient:
+            parts += [(ky, dkx), (dky, kx)]
+        olds = [(ky, kx)] * len(parts)  # unused values when old is None (sign 0)
+        if old is not None:
+            okx, odkx, oky, odky = old
+            olds = [(oky, okx)] + ([(oky, odkx), (odky, okx)] if self.gradient else [])
+        sign = -1.0 if old is not None else 0.0
+        for f, ((a, b), (oa, ob)) in enumerate(zip(parts, olds, strict=True)):
+            # a column block of z (strided rows): the kernel takes any layout
+            _add_kernel_increment(self.z[:, f * m : (f + 1) * m], a, b, oa, ob, sign)
+
+    def _mix(self, w: sp.csr_matrix) -> None:
+        assert self.z is not None and self._buf is not None
+        for _ in range(self.rounds):
+            _spmm(w.indptr, w.indices, w.data, self.z, self._buf)
+            self.z, self._buf = self._buf, self.z
+
+    def initialize(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
+        """``z(0) = W^m phi(0)``; returns ``z`` ``(N, F M)``."""
+        n = positions.shape[1]
+        self.z = np.zeros((n, self.fields * self.grid.size))
+        self._buf = np.empty_like(self.z)
+        self._factors = kernel_factors(self.grid, positions, self.bandwidth)
+        self._increment(self._factors, None)
+        self._mix(w)
+        return self.z
+
+    def step(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
+        """``z <- W^m (z + phi(t+1) - phi(t))``; returns ``z``."""
+        assert self.z is not None and self._factors is not None, "call initialize first"
+        factors = kernel_factors(self.grid, positions, self.bandwidth)
+        self._increment(factors, self._factors)
+        self._factors = factors
+        self._mix(w)
+        return self.z
+
+    def reference_step(
+        self, z: np.ndarray, phi_new: np.ndarray, phi_old: np.ndarray, w: sp.csr_matrix
+    ) -> np.ndarray:
+        """Plain statement of :meth:`step`: ``W^m (z + phi_new - phi_old)`` (scipy)."""
+        out = z + phi_new - phi_old
+        for _ in range(self.rounds):
+            out = w @ out
+        return out
+
+
+# --------------------------------------------------------------------------------------
+# per-robot filters
+
+
+class BatchedPoisson:
+    """Solves ``(G^T diag(c_i) G) delta_i = b_i``, ``sum delta_i = 0``, for every robot
+    ``i`` by conjugate gradients preconditioned with one shared sparse LU of
+    ``G^T diag(c_bar) G`` (cell 0 pinned, ``c_bar`` the mean of the ``c_i``), refactored
+    when more than ``refactor_after`` iterations were needed. Rows are robots.
+    """
+
+    def __init__(self, grid: Grid, tol: float = 1e-10, refactor_after: int = 8) -> None:
+        self.grid, self.tol, self.refactor_after = grid, tol, refactor_after
+        self.g = grid.gradient_matrix.tocsr()
+        self.gt = self.g.T.tocsr()
+        self._lu: spla.SuperLU | None = None
+        self.iterations = 0
+        self.factorizations = 0
+
+    def _factorize(self, c_bar: np.ndarray) -> None:
+        op = (self.gt @ sp.diags(c_bar) @ self.g).tolil()
+        op[0, :] = 0.0
+        op[:, 0] = 0.0
+        op[0, 0] = 1.0
+        self._lu = spla.splu(op.tocsc())
+        self.factorizations += 1
+
+    def _precondition(self, r: np.ndarray) -> np.ndarray:
+        assert self._lu is not None
+        rt = np.array(r.T, order="F")
+        rt[0, :] = 0.0
+        z = self._lu.solve(rt).T
+        return z - z.mean(axis=1, keepdims=True)
+
+    def _op(self, d: np.ndarray, c: np.ndarray) -> np.ndarray:
+        g = self.grid
+        out = np.empty_like(d)
+        _weighted_laplacian(d, c, g.nx, g.ny, g.dx, g.dy, out)
+        return out
+
+    def solve(self, c: np.ndarray, b: np.ndarray, maxiter: int = 200) -> np.ndarray:
+        """Zero-mean solutions ``(N, M)`` for information ``c`` ``(N, 2M)``, ``b`` ``(N, M)``."""
+        if self._lu is None:
+            self._factorize(c.mean(axis=0))
+        x = np.zeros_like(b)
+        r = b.copy()
+        b_norm = np.linalg.norm(b, axis=1)
+        active = b_norm > 0.0
+        z = self._precondition(r)
+        d = z.copy()
+        rz = np.einsum("ij,ij->i", r, z)
+        its = 0
+        while active.any() and its < maxiter:
+            its += 1
+            ad = self._op(d, c)
+            curv = np.einsum("ij,ij->i", d, ad)
+            # a robot whose preconditioned residual vanished has converged to round-off
+            active &= (rz > 0.0) & (curv > 0.0)
+            step = np.where(active, rz / np.where(active, curv, 1.0), 0.0)
+            x += step[:, None] * d
+            r -= step[:, None] * ad
+            active &= np.linalg.norm(r, axis=1) > self.tol * b_norm
+            if not active.any():
+                break
+            z = self._precondition(r)
+            rz_new = np.einsum("ij,ij->i", r, z)
+            beta = np.where(active, rz_new / np.where(rz > 0, rz, 1.0), 0.0)
+            d = z + beta[:, None] * d
+            rz = rz_new
+        if its > self.refactor_after:
+            self._factorize(c.mean(axis=0))
+        self.iterations = its
+        return x - x.mean(axis=1, keepdims=True)
+
+
+class RobotFilters:
+    """Per-robot fast filters (:class:`harness.filters.local.LocalFilters`, vectorised
+    over robots): density estimates ``x`` and variances ``d`` of shape ``(N, M)``; with
+    ``gradient="filter"`` also ``x_g`` ``(N, M)`` and gradient-grid information ``c_g``
+    ``(N, 2M)``.
+
+    Args:
+        grid: The grid.
+        dt: Step (s).
+        measurement: The swarm's KDE measurement model (``N``, ``h``, settings): each
+            robot's tracked observation has the centralised KDE's noise.
+        gradient: ``"grid"`` (``q_hat_i = G p_hat_i``) or ``"filter"``.
+    """
+
+    def __init__(
+        self, grid: Grid, dt: float, measurement: MeasurementModel, gradient: str = "grid"
+    ) -> None:
+        if gradient not in ("grid", "filter"):
+            raise ValueError(f"gradient must be 'grid' or 'filter', got {gradient!r}")
+        self.grid, self.dt, self.measurement, self.gradient = grid, dt, measurement, gradient
+        self.settings: FilterSettings = measurement.settings
+        self.poisson = BatchedPoisson(grid)
+        self.x: np.ndarray | None = None
+        self.d: np.ndarray | None = None
+        self.x_g: np.ndarray | None = None
+        self.c_g: np.ndarray | None = None
+
+    def initialize(self, y: np.ndarray, y_g: np.ndarray | None = None) -> None:
+        """``x0 = y``, ``P0 = initial_variance k``; gradient as in ``LocalFilters``.
+
+        Args:
+            y: Observations ``(N, M)`` (1 / length^2).
+            y_g: Gradient observations ``(N, 2M)`` (1 / length^3), for ``"filter"``.
+        """
+        s, g = self.settings, self.grid
+        k, k_g = self.measurement.constants
+        n = y.shape[0]
+        self.x = np.array(y, dtype=float)
+        self.d = np.full((n, g.size), s.initial_variance * k)
+        if self.gradient == "filter":
+            assert y_g is not None
+            self.c_g = np.full((n, 2 * g.size), 1.0 / (s.initial_variance * k_g))
+            rhs = np.asarray(y_g) @ self.poisson.g  # rows: G^T y_g,i
+            fit = self.poisson.solve(np.ones((n, 2 * g.size)), np.ascontiguousarray(rhs))
+            self.poisson._lu = None  # the fit's unit weights are not the filter's
+            self.x_g = fit + 1.0 / g.area
+
+    def step(self, y: np.ndarray, a: sp.csr_matrix, y_g: np.ndarray | None = None) -> None:
+        """Predict under ``A`` and update with the observations (in place)."""
+        assert self.x is not None and self.d is not None, "call initialize first"
+        s, dt, g = self.settings, self.dt, self.grid
+        k, k_g = self.measurement.constants
+        a = a.tocsr()
+        a.sort_indices()
+        rho = dt * 2.0 * float(np.max(np.abs(a.diagonal()), initial=0.0))
+        terms = _series_terms(rho)
+        if terms > _MAX_SERIES_TERMS:  # as implicit_solve: sparse LU, then no series
+            lu = spla.splu((sp.identity(g.size, format="csc") - dt * a).tocsc())
+            self.x = np.ascontiguousarray(lu.solve(np.asfortranarray(self.x.T)).T)
+            if self.x_g is not None:
+                self.x_g = np.ascontiguousarray(lu.solve(np.asfortranarray(self.x_g.T)).T)
+            terms = 0
+        adt = a.data * dt
+        sq = adt**2
+        boost = 1.0 + 2.0 * dt * a.diagonal()
+        q = s.process_noise * dt
+        y = np.ascontiguousarray(y, dtype=float)
+        _density_filter_step(
+            self.x, self.d, y, a.indptr, a.indices, adt, sq, boost, terms,
+            q * k, s.r_scale * k, s.r_floor,
+        )  # fmt: skip
+        if self.gradient == "filter":
+            assert self.x_g is not None and self.c_g is not None and y_g is not None
+            _gradient_predict(
+                self.x_g, self.c_g, a.indptr, a.indices, adt, sq, boost, terms, q * k_g
+            )
+            one = 1.0 / (s.r_scale * k_g * np.maximum(y, s.r_floor))
+            w_g = np.concatenate([one, one], axis=1)
+            self.c_g += w_g
+            rhs = np.empty_like(self.x_g)
+            yg = np.ascontiguousarray(y_g, dtype=float)
+            _gradient_rhs(self.x_g, yg, w_g, g.nx, g.ny, g.dx, g.dy, rhs)
+            self.x_g += self.poisson.solve(self.c_g, rhs)
+
+    @property
+    def q_hat(self) -> np.ndarray:
+        """Gradient estimates ``(N, 2M)``: ``G x_g,i`` (filter) or ``G p_hat_i`` (grid)."""
+        src = self.x_g if self.gradient == "filter" else self.x
+        assert src is not None
+        return np.asarray(src @ self.poisson.gt)
+
+
+def density_filter_reference(
+    x: np.ndarray, d: np.ndarray, y: np.ndarray, a: sp.csr_matrix, dt: float,
+    measurement: MeasurementModel,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Plain numpy statement of the density step of :class:`RobotFilters` for rows
+    ``(N, M)`` (the density part of ``LocalFilters.step``, with scipy products)."""
+    from harness.fokker_planck import implicit_solve
+
+    s = measurement.settings
+    k, _ = measurement.constants
+    xm = implicit_solve(a, dt, x.T).T
+    dm = squared_transition(a, dt, d.T).T + s.process_noise * dt * k
+    r = s.r_scale * k * np.maximum(y, s.r_floor)
+    dp = 1.0 / (1.0 / dm + 1.0 / r)
+    return xm + dp / r * (y - xm), dp
+
+
+# --------------------------------------------------------------------------------------
+# decentralised control
+
+
+def _law_at_cells(
+    p: np.ndarray, qx: np.ndarray, qy: np.ndarray, target: Target, cells: np.ndarray,
+    alpha: float, sigma: float,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """The paper's law's cell-centre values at flat ``cells`` (same shape as ``p``)."""
+    ps = target.p.ravel()[cells]
+    gx = target.grad[0].ravel()[cells]
+    gy = target.grad[1].ravel()[cells]
+    vx = -alpha * (ps * qx - p * gx) / ps**2 + sigma * gx / ps
+    vy = -alpha * (ps * qy - p * gy) / ps**2 + sigma * gy / ps
+    return vx, vy
+
+
+def decentralised_velocities(
+    grid: Grid,
+    target: Target,
+    alpha: float,
+    sigma: float,
+    p_hat: np.ndarray,
+    positions: np.ndarray,
+    q_hat: np.ndarray | None = None,
+) -> np.ndarray:
+    """Each robot's velocity from its own estimates at its own position, ``(2, N)``
+    (length / time).
+
+    Robot ``i`` evaluates the paper's law (eq. ``modified density feedback law using
+    estimates``, :func:`harness.control.paper_law`, cell-centre values)
+
+        v_i = -alpha (p_* q_hat_i - p_hat_i grad p_*) / p_*^2 + sigma grad p_* / p_*
+
+    at the four cell centres around ``X_i`` and interpolates bilinearly as
+    :func:`harness.agents.interpolate` does (nearest values beyond the outer centres).
+
+    Args:
+        p_hat: Robots' density estimates ``(N, M)`` (1 / length^2).
+        positions: ``(2, N)`` (length).
+        q_hat: Gradient estimates ``(N, 2M)`` (1 / length^3); None for the grid
+            gradient ``G p_hat_i`` (evaluated only at the four cells).
+    """
+    g = grid
+    n = positions.shape[1]
+    u = np.clip((positions[0] - g.x0) / g.dx - 0.5, 0.0, g.nx - 1)
+    w = np.clip((positions[1] - g.y0) / g.dy - 0.5, 0.0, g.ny - 1)
+    i0 = np.minimum(u.astype(np.intp), g.nx - 2)
+    j0 = np.minimum(w.astype(np.intp), g.ny - 2)
+    fx, fy = u - i0, w - j0
+    ci = np.stack([i0, i0 + 1, i0, i0 + 1], axis=1)  # (N, 4): corners 00, 10, 01, 11
+    cj = np.stack([j0, j0, j0 + 1, j0 + 1], axis=1)
+    cells = cj * g.nx + ci
+    rows = np.arange(n)[:, None]
+    p = p_hat[rows, cells]
+    if q_hat is None:
+        ip, im = np.minimum(ci + 1, g.nx - 1), np.maximum(ci - 1, 0)
+        jp, jm = np.minimum(cj + 1, g.ny - 1), np.maximum(cj - 1, 0)
+        qx = (p_hat[rows, cj * g.nx + ip] - p_hat[rows, cj * g.nx + im]) / (2 * g.dx)
+        qy = (p_hat[rows, jp * g.nx + ci] - p_hat[rows, jm * g.nx + ci]) / (2 * g.dy)
+    else:
+        qx = q_hat[rows, cells]
+        qy = q_hat[rows, g.size + cells]
+    vx, vy = _law_at_cells(p, qx, qy, target, cells, alpha, sigma)
+    out = np.empty((2, n))
+    for c, v in enumerate((vx, vy)):
+        out[c] = (v[:, 0] + fx * (v[:, 1] - v[:, 0])) * (1 - fy) + (
+            v[:, 2] + fx * (v[:, 3] - v[:, 2])
+        ) * fy
+    return out
+
+
+def decentralised_velocities_reference(
+    grid: Grid,
+    target: Target,
+    alpha: float,
+    sigma: float,
+    p_hat: np.ndarray,
+    positions: np.ndarray,
+    q_hat: np.ndarray | None = None,
+) -> np.ndarray:
+    """Plain statement of :func:`decentralised_velocities`: per robot the full field of
+    :func:`harness.control.paper_law` and :func:`harness.agents.interpolate` at ``X_i``.
+    """
+    from harness.agents import interpolate
+    from harness.control import paper_law
+
+    out = np.empty((2, positions.shape[1]))
+    for i in range(positions.shape[1]):
+        p = p_hat[i].reshape(grid.shape)
+        q = grid.gradient(p) if q_hat is None else q_hat[i].reshape(2, *grid.shape)
+        v = paper_law(p, q, target, alpha, sigma)
+        out[:, i] = interpolate(grid, v.centres, positions[:, i : i + 1])[:, 0]
+    return out
+
+
+def euler_maruyama_robots(
+    grid: Grid,
+    positions: np.ndarray,
+    velocities: np.ndarray,
+    sigma: float,
+    dt: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """In place: ``X <- R(X + v_i dt + sqrt(2 sigma dt) xi)`` with per-robot velocities
+    ``(2, N)`` (the step of :meth:`harness.agents.Swarm.step_reference`, same draws)."""
+    from harness.agents import reflect
+
+    noise = rng.standard_normal(positions.shape) * np.sqrt(2.0 * sigma * dt)
+    positions += velocities * dt + noise
+    reflect(positions[0], grid.x0, grid.x1)
+    reflect(positions[1], grid.y0, grid.y1)
+    return positions
+
+
+# --------------------------------------------------------------------------------------
+# metrics
+
+
+def consensus_l2(grid: Grid, p_hat: np.ndarray) -> float:
+    """Mean over robots of ``||p_hat_i - mean_j p_hat_j||`` (1 / length)."""
+    dev = p_hat - p_hat.mean(axis=0)
+    return float(np.mean(np.sqrt(np.einsum("ij,ij->i", dev, dev) * grid.cell_area)))
+
+
+def central_gap_l2(grid: Grid, p_hat: np.ndarray, p_central: np.ndarray) -> float:
+    """Mean over robots of ``||p_hat_i - p_hat_central||`` (1 / length)."""
+    dev = p_hat - np.asarray(p_central).ravel()
+    return float(np.mean(np.sqrt(np.einsum("ij,ij->i", dev, dev) * grid.cell_area)))
+
+
+def message_counts(adj: sp.csr_matrix, rounds: int, floats_per_message: int) -> dict[str, float]:
+    """Communication per robot per step (means over robots; see the module docstring).
+
+    Returns:
+        ``messages`` (messages / robot / step), ``floats`` (float64 values / robot /
+        step), ``bytes`` (bytes / robot / step) and ``mean_degree``.
+    """
+    deg = float(adj.nnz) / adj.shape[0]
+    msgs = rounds * deg
+    return {
+        "messages": msgs,
+        "floats": msgs * floats_per_message,
+        "bytes": 8.0 * msgs * floats_per_message,
+        "mean_degree": deg,
+    }
+
+
+# --------------------------------------------------------------------------------------
+# the estimator
+
+
+@dataclass(frozen=True)
+class DistributedEstimate:
+    """The robots' estimates after a step.
+
+    Attributes:
+        p_hat: ``(N, M)`` density estimates (1 / length^2).
+        q_hat: ``(N, 2M)`` gradient estimates (1 / length^3), or None (grid gradient,
+            computed on demand by :attr:`RobotFilters.q_hat`).
+        observation: ``(N, M)`` tracked observations ``z_i`` (density part).
+        adjacency: The step's communication graph.
+        eps: The step's consensus gain.
+    """
+
+    p_hat: np.ndarray
+    q_hat: np.ndarray | None
+    observation: np.ndarray
+    adjacency: sp.csr_matrix
+    eps: float
+
+
+class DistributedEstimator:
+    """Graph + dynamic average consensus + per-robot fast filters.
+
+    Args:
+        grid: The grid.
+        dt: Step (s).
+        n_robots: ``N`` (each robot knows it; it sets ``k``, ``k_g``).
+        bandwidth: KDE bandwidth ``h`` (length).
+        settings: Filter settings.
+        radius: Communication radius (length), or
+        k_nearest: number of nearest neighbours (exactly one of the two).
+        rounds: Consensus rounds per step.
+        gain: Consensus gain factor in ``(0, 1]``.
+        gradient: ``"grid"`` or ``"filter"`` (see the module docstring).
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        dt: float,
+        n_robots: int,
+        bandwidth: float,
+        settings: FilterSettings,
+        radius: float | None = None,
+        k_nearest: int | None = None,
+        rounds: int = 1,
+        gain: float = 1.0,
+        gradient: str = "grid",
+    ) -> None:
+        if (radius is None) == (k_nearest is None):
+            raise ValueError("give exactly one of radius and k_nearest")
+        self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
+        self.consensus = DynamicAverageConsensus(
+            grid, bandwidth, gradient=gradient == "filter", rounds=rounds, gain=gain
+        )
+        self.filters = RobotFilters(
+            grid, dt, MeasurementModel(n_robots, bandwidth, settings), gradient
+        )
+        self.adjacency: sp.csr_matrix | None = None
+
+    def _graph(self, positions: np.ndarray) -> sp.csr_matrix:
+        self.adjacency = communication_graph(positions, self.radius, self.k_nearest)
+        w, self.consensus.eps = consensus_weights(self.adjacency, self.consensus.gain)
+        return w
+
+    def _split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        m = self.grid.size
+        return z[:, :m], (z[:, m:] if self.consensus.gradient else None)
+
+    def _estimate(self, y: np.ndarray) -> DistributedEstimate:
+        f = self.filters
+        assert f.x is not None and self.adjacency is not None
+        q = f.q_hat if f.gradient == "filter" else None
+        return DistributedEstimate(f.x, q, y, self.adjacency, self.consensus.eps)
+
+    def initialize(self, positions: np.ndarray) -> DistributedEstimate:
+        """Graph, ``z(0)`` and the filters' start from it, at ``t = 0``."""
+        z = self.consensus.initialize(positions, self._graph(positions))
+        y, y_g = self._split(z)
+        self.filters.initialize(np.ascontiguousarray(y), y_g)
+        return self._estimate(y)
+
+    def step(self, positions: np.ndarray, a: sp.csr_matrix) -> DistributedEstimate:
+        """New graph at the new positions, consensus, then every robot's filter step
+        under the model ``A`` (the Fokker-Planck matrix of the last interval)."""
+        z = self.consensus.step(positions, self._graph(positions))
+        y, y_g = self._split(z)
+        self.filters.step(y, a, y_g)
+        return self._estimate(y)
+
+    def memory_bytes(self) -> int:
+        """Bytes held in per-robot arrays (consensus state and buffer, filter states)."""
+        arrays = [self.consensus.z, self.consensus._buf, self.filters.x, self.filters.d]
+        arrays += [self.filters.x_g, self.filters.c_g]
+        arrays += list(self.consensus._factors or ())
+        return int(sum(a.nbytes for a in arrays if a is not None))
