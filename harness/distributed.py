@@ -154,13 +154,14 @@ def communication_graph(
             _, idx = tree.query(pts, k + 1)
             rows = np.repeat(np.arange(n), k)
             cols = idx[:, 1:].ravel()  # the first neighbour is the robot itself
-    adj = sp.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n)).tocsr()
-    adj = adj + adj.T
-    adj.data[:] = 1.0  # duplicates (mutual k-nearest) summed to 2
-    adj.setdiag(0.0)
-    adj.eliminate_zeros()
-    adj.sort_indices()
-    return adj.tocsr()
+    # symmetrise: both orientations, duplicates (mutual k-nearest) merged; no self-loops
+    keep = rows != cols
+    r2 = np.concatenate([rows[keep], cols[keep]])
+    c2 = np.concatenate([cols[keep], rows[keep]])
+    key = np.unique(r2.astype(np.int64) * n + c2)
+    r2, c2 = key // n, key % n
+    indptr = np.searchsorted(r2, np.arange(n + 1))
+    return sp.csr_matrix((np.ones(key.size), c2.astype(np.int32), indptr), shape=(n, n))
 
 
 def laplacian(adj: sp.csr_matrix) -> sp.csr_matrix:
