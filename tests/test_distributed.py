@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
+import scipy.sparse.linalg
 from scipy.spatial.distance import cdist
 
 from harness.agents import interpolate
@@ -139,7 +140,7 @@ def test_isolated_robot_tracks_only_its_own_kernel(rng):
 
 @pytest.mark.parametrize(("gain", "rounds"), [(1.0, 1), (0.5, 1), (1.0, 3)])
 def test_consensus_error_decays_at_the_rate_of_the_algebraic_connectivity(gain, rounds):
-    n = 24
+    n = 12
     g = Grid(6, 5)
     pos = _ring(n)
     adj = communication_graph(pos, k_nearest=2)
@@ -152,7 +153,7 @@ def test_consensus_error_decays_at_the_rate_of_the_algebraic_connectivity(gain, 
     dac = DynamicAverageConsensus(g, H, rounds=rounds, gain=gain)
     z = dac.initialize(pos, w)
     errs = []
-    for _ in range(600 // rounds):  # robots at rest: e(t+1) = W^m e(t)
+    for _ in range(200 // rounds):  # robots at rest: e(t+1) = W^m e(t)
         errs.append(np.linalg.norm(z - z.mean(axis=0)))
         z = dac.step(pos, w)
     errs = np.array(errs)
@@ -225,7 +226,7 @@ def test_complete_graph_equals_the_centralised_filter(gradient):
     fp = FokkerPlanck(g, SIGMA)
     e = est.initialize(pos)
     central.initialize(*kde.exact(pos))
-    for step in range(40):
+    for step in range(30):
         assert e.eps == pytest.approx(1.0 / n)
         p_c, q_c = central.estimates
         np.testing.assert_allclose(e.p_hat, np.broadcast_to(p_c.ravel(), e.p_hat.shape),
@@ -297,7 +298,7 @@ def _iss_gap(delta: float, settings: FilterSettings) -> float:
 
     p, gr = kde.exact(pos)
     central.initialize(p, gr)
-    robots.initialize(p.ravel() + delta * err(0))
+    robots.initialize(np.repeat(p.ravel()[None], 3, axis=0))  # error injected from t = 1
     fp = FokkerPlanck(g, SIGMA)
     gap = 0.0
     for t in range(1, 80):
@@ -342,3 +343,16 @@ def test_consensus_weights_are_doubly_stochastic_and_nonnegative(rng):
         deg = np.asarray(adj.sum(axis=1)).ravel()
         assert eps == pytest.approx(gain / (1 + deg.max()))
     assert isinstance(w, sp.csr_matrix)
+
+
+def test_row_solver_matches_superlu(rng):
+    from harness.distributed import RowSolver
+
+    g = Grid(9, 8)
+    a = FokkerPlanck(g, 1e-3).matrix(VelocityField.from_centres(rng.normal(size=(2, *g.shape))))
+    system = sp.identity(g.size, format="csr") - 0.3 * a
+    x = rng.normal(size=(37, g.size))
+    expected = sp.linalg.splu(system.tocsc()).solve(x.T).T
+    for chunks in (1, 3, 8):
+        got = RowSolver(system, chunks=chunks).solve_rows(x)
+        np.testing.assert_allclose(got, expected, atol=1e-13 * abs(expected).max())
