@@ -214,7 +214,8 @@ def consensus_weights(adj: sp.csr_matrix, gain: float = 1.0) -> tuple[sp.csr_mat
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _spmm(indptr, indices, data, z, out):  # pragma: no cover - compiled
     """``out = W z`` for CSR ``W`` and dense ``z`` ``(N, F)``: rows in parallel, each
-    row's sum in CSR order (deterministic for any thread count)."""
+    row's sum in CSR order (deterministic for any thread count).
+    """
     n, f = z.shape
     for i in numba.prange(n):
         for c in range(f):
@@ -229,7 +230,8 @@ def _spmm(indptr, indices, data, z, out):  # pragma: no cover - compiled
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _add_kernel_increment(z, ky, kx, ky_old, kx_old, sign_old):  # pragma: no cover
     """``z[i] += outer(ky[i], kx[i]) + sign_old outer(ky_old[i], kx_old[i])`` (flattened
-    ``(ny, nx)``), i.e. ``z += phi(t+1) - phi(t)`` for ``sign_old = -1``."""
+    ``(ny, nx)``), i.e. ``z += phi(t+1) - phi(t)`` for ``sign_old = -1``.
+    """
     n, ny = ky.shape
     nx = kx.shape[1]
     for i in numba.prange(n):
@@ -275,8 +277,8 @@ def _density_filter_step(
 ):  # pragma: no cover
     """Per robot ``i`` (rows), in place, the density part of ``LocalFilters.step``:
 
-        x^- = sum_k (dt A)^k x,  d^- = (F1 o F1) d + q dt k,
-        r = r_scale k max(y, r_floor),  d = 1 / (1/d^- + 1/r),  x = x^- + d / r (y - x^-).
+    x^- = sum_k (dt A)^k x,  d^- = (F1 o F1) d + q dt k,
+    r = r_scale k max(y, r_floor),  d = 1 / (1/d^- + 1/r),  x = x^- + d / r (y - x^-).
     """
     n, m = x.shape
     for i in numba.prange(n):
@@ -318,7 +320,8 @@ def _gradient_predict(xg, cg, indptr, indices, adt, sq, boost, terms, qkg):  # p
 @numba.njit(cache=True, nogil=True)
 def _grad_row(f, nx, ny, dx, dy, out):  # pragma: no cover
     """``out = G f`` for one flattened field (``Grid.gradient``: central differences,
-    reflecting ghosts), ``out`` of length ``2M``."""
+    reflecting ghosts), ``out`` of length ``2M``.
+    """
     m = nx * ny
     for j in range(ny):
         jm = max(j - 1, 0)
@@ -415,7 +418,8 @@ def _lu_solve_columns(lp, li, lx, up, ui, ux, perm_r, perm_c, b, chunks):  # pra
 class RowSolver:
     """``A^{-1}`` applied to every row of an ``(N, M)`` array: one sparse LU (SuperLU,
     COLAMD), triangular solves compiled and vectorised over robots
-    (:func:`_lu_solve_columns`); ``splu(A).solve`` is the reference (tests compare)."""
+    (:func:`_lu_solve_columns`); ``splu(A).solve`` is the reference (tests compare).
+    """
 
     def __init__(self, a: sp.spmatrix, chunks: int = 4) -> None:
         lu = spla.splu(sp.csc_matrix(a))
@@ -487,7 +491,12 @@ class DynamicAverageConsensus:
     """
 
     def __init__(
-        self, grid: Grid, bandwidth: float, gradient: bool = False, rounds: int = 1, gain: float = 1.0
+        self,
+        grid: Grid,
+        bandwidth: float,
+        gradient: bool = False,
+        rounds: int = 1,
+        gain: float = 1.0,
     ) -> None:
         if rounds < 1:
             raise ValueError(f"consensus rounds must be >= 1, got {rounds}")
@@ -725,7 +734,8 @@ def density_filter_reference(
     measurement: MeasurementModel,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Plain numpy statement of the density step of :class:`RobotFilters` for rows
-    ``(N, M)`` (the density part of ``LocalFilters.step``, with scipy products)."""
+    ``(N, M)`` (the density part of ``LocalFilters.step``, with scipy products).
+    """
     from harness.fokker_planck import implicit_solve
 
     s = measurement.settings
@@ -842,7 +852,8 @@ def euler_maruyama_robots(
     rng: np.random.Generator,
 ) -> np.ndarray:
     """In place: ``X <- R(X + v_i dt + sqrt(2 sigma dt) xi)`` with per-robot velocities
-    ``(2, N)`` (the step of :meth:`harness.agents.Swarm.step_reference`, same draws)."""
+    ``(2, N)`` (the step of :meth:`harness.agents.Swarm.step_reference`, same draws).
+    """
     from harness.agents import reflect
 
     noise = rng.standard_normal(positions.shape) * np.sqrt(2.0 * sigma * dt)
@@ -973,7 +984,8 @@ class DistributedEstimator:
 
     def step(self, positions: np.ndarray, a: sp.csr_matrix) -> DistributedEstimate:
         """New graph at the new positions, consensus, then every robot's filter step
-        under the model ``A`` (the Fokker-Planck matrix of the last interval)."""
+        under the model ``A`` (the Fokker-Planck matrix of the last interval).
+        """
         z = self.consensus.step(positions, self._graph(positions))
         y, y_g = self._split(z)
         self.filters.step(y, a, y_g)

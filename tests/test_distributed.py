@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 import scipy.sparse as sp
-import scipy.sparse.linalg
+import scipy.sparse.linalg as spla
 from scipy.spatial.distance import cdist
 
 from harness.agents import interpolate
@@ -352,7 +352,7 @@ def test_row_solver_matches_superlu(rng):
     a = FokkerPlanck(g, 1e-3).matrix(VelocityField.from_centres(rng.normal(size=(2, *g.shape))))
     system = sp.identity(g.size, format="csr") - 0.3 * a
     x = rng.normal(size=(37, g.size))
-    expected = sp.linalg.splu(system.tocsc()).solve(x.T).T
+    expected = spla.splu(system.tocsc()).solve(x.T).T
     for chunks in (1, 3, 8):
         got = RowSolver(system, chunks=chunks).solve_rows(x)
         np.testing.assert_allclose(got, expected, atol=1e-13 * abs(expected).max())
