@@ -113,7 +113,7 @@ from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.local import squared_transition
 from harness.fokker_planck import _MAX_SERIES_TERMS, _series_terms
 from harness.grid import Grid
-from harness.kde import _kernel_1d
+from harness.kde import kernel_1d
 
 # --------------------------------------------------------------------------------------
 # communication graph
@@ -453,8 +453,8 @@ def kernel_factors(
     means over robots are :meth:`harness.kde.KDE.exact`.
     """
     g = grid
-    kx, dkx = _kernel_1d(positions[0], g.x, bandwidth, g.x0, g.x1, True)
-    ky, dky = _kernel_1d(positions[1], g.y, bandwidth, g.y0, g.y1, True)
+    kx, dkx = kernel_1d(positions[0], g.x, bandwidth, g.x0, g.x1, True)
+    ky, dky = kernel_1d(positions[1], g.y, bandwidth, g.y0, g.y1, True)
     return kx, dkx, ky, dky
 
 

@@ -76,7 +76,7 @@ def _gauss_inplace(e: np.ndarray) -> np.ndarray:
     return np.exp(e, out=e)
 
 
-def _kernel_1d(
+def kernel_1d(
     points: np.ndarray,
     centres: np.ndarray,
     h: float,
@@ -115,6 +115,9 @@ def _kernel_1d(
     return g, dg
 
 
+_kernel_1d = kernel_1d  # the former private name (kept for older callers)
+
+
 @dataclass
 class KDE:
     """Gaussian KDE of robot positions on a grid, with its analytic gradient.
@@ -147,8 +150,8 @@ class KDE:
         g = self.grid
         self._nodes_x = np.linspace(g.x0, g.x1, self.bin_factor * g.nx + 1)
         self._nodes_y = np.linspace(g.y0, g.y1, self.bin_factor * g.ny + 1)
-        kx, dkx = _kernel_1d(self._nodes_x, g.x, self.bandwidth, g.x0, g.x1, self.mirror)
-        ky, dky = _kernel_1d(self._nodes_y, g.y, self.bandwidth, g.y0, g.y1, self.mirror)
+        kx, dkx = kernel_1d(self._nodes_x, g.x, self.bandwidth, g.x0, g.x1, self.mirror)
+        ky, dky = kernel_1d(self._nodes_y, g.y, self.bandwidth, g.y0, g.y1, self.mirror)
         self._node_kernels = (kx, dkx, ky, dky)
 
     def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -177,8 +180,8 @@ class KDE:
             # mmap and cost page faults that dominate small-N timings.
             self._work = {n: tuple(np.empty((n, m)) for m in (g.nx, g.nx, g.ny, g.ny))}
         bx, bdx, by, bdy = self._work[n]
-        kx, dkx = _kernel_1d(positions[0], g.x, self.bandwidth, g.x0, g.x1, self.mirror, (bx, bdx))
-        ky, dky = _kernel_1d(positions[1], g.y, self.bandwidth, g.y0, g.y1, self.mirror, (by, bdy))
+        kx, dkx = kernel_1d(positions[0], g.x, self.bandwidth, g.x0, g.x1, self.mirror, (bx, bdx))
+        ky, dky = kernel_1d(positions[1], g.y, self.bandwidth, g.y0, g.y1, self.mirror, (by, bdy))
         # p[j, i] = (1/N) sum_k Gy[k, j] Gx[k, i]; the gradient uses dGx or dGy.
         p = ky.T @ kx
         gx = ky.T @ dkx
