@@ -119,10 +119,112 @@ from harness.kde import kernel_1d
 # communication graph
 
 
+@numba.njit(cache=True, nogil=True)
+def _sort_rows_unique(indptr, indices, n):  # pragma: no cover - compiled
+    """Sort every CSR row's column indices, drop duplicates and self-loops; returns the
+    compacted ``(indptr, indices)``.
+    """
+    out_ptr = np.zeros(n + 1, dtype=np.int64)
+    out_idx = np.empty(indices.size, dtype=np.int32)
+    pos = 0
+    for i in range(n):
+        row = np.sort(indices[indptr[i] : indptr[i + 1]])
+        last = -1
+        for j in row:
+            if j != last and j != i:
+                out_idx[pos] = j
+                pos += 1
+            last = j
+        out_ptr[i + 1] = pos
+    return out_ptr, out_idx[:pos].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _radius_neighbours(px, py, radius):  # pragma: no cover - compiled
+    """CSR (sorted rows) of the pairs ``i != j`` with ``sqrt(dx^2 + dy^2) <= radius``
+    (the expression of ``scipy.spatial.distance.cdist``), by a cell list of square
+    buckets of side ``>= radius``: a robot's neighbours are in its bucket's 3 x 3 block.
+    """
+    n = px.size
+    x0, y0 = px.min(), py.min()
+    ext = max(px.max() - x0, py.max() - y0, 1e-300)
+    nb = max(1, min(int(ext / max(radius, 1e-300)), 256))  # buckets per side
+    side = ext / nb
+    bx = np.minimum((((px - x0) / side)).astype(np.int64), nb - 1)
+    by = np.minimum((((py - y0) / side)).astype(np.int64), nb - 1)
+    bucket = by * nb + bx
+    start = np.zeros(nb * nb + 1, dtype=np.int64)
+    for i in range(n):
+        start[bucket[i] + 1] += 1
+    for b in range(nb * nb):
+        start[b + 1] += start[b]
+    fill = start[:-1].copy()
+    members = np.empty(n, dtype=np.int64)
+    for i in range(n):  # in index order: every bucket's members are sorted
+        members[fill[bucket[i]]] = i
+        fill[bucket[i]] += 1
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    for sweep in range(2):  # count, then fill
+        indices = np.empty(indptr[n] if sweep else 0, dtype=np.int32)
+        for i in range(n):
+            pos = indptr[i]
+            cnt = 0
+            for cy in range(max(by[i] - 1, 0), min(by[i] + 2, nb)):
+                for cx in range(max(bx[i] - 1, 0), min(bx[i] + 2, nb)):
+                    b = cy * nb + cx
+                    for k in range(start[b], start[b + 1]):
+                        j = members[k]
+                        dx = px[i] - px[j]
+                        dy = py[i] - py[j]
+                        if j != i and np.sqrt(dx * dx + dy * dy) <= radius:
+                            if sweep:
+                                indices[pos + cnt] = j
+                            cnt += 1
+            if not sweep:
+                indptr[i + 1] = indptr[i] + cnt
+        if sweep:
+            for i in range(n):
+                indices[indptr[i] : indptr[i + 1]] = np.sort(indices[indptr[i] : indptr[i + 1]])
+    return indptr, indices
+
+
+@numba.njit(cache=True, nogil=True)
+def _symmetric_csr(n, rows, cols):  # pragma: no cover - compiled
+    """CSR of the symmetrised edge list ``{(r, c), (c, r)}``: sorted rows, no duplicates,
+    no self-loops.
+    """
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    for k in range(rows.size):
+        indptr[rows[k] + 1] += 1
+        indptr[cols[k] + 1] += 1
+    for i in range(n):
+        indptr[i + 1] += indptr[i]
+    fill = indptr[:-1].copy()
+    indices = np.empty(indptr[n], dtype=np.int32)
+    for k in range(rows.size):
+        indices[fill[rows[k]]] = cols[k]
+        fill[rows[k]] += 1
+        indices[fill[cols[k]]] = rows[k]
+        fill[cols[k]] += 1
+    return _sort_rows_unique(indptr, indices, n)
+
+
+def _csr(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, n: int) -> sp.csr_matrix:
+    """A CSR matrix from canonical arrays (sorted rows, no duplicates), unchecked."""
+    out = sp.csr_matrix((data, indices.astype(np.int32, copy=False), indptr.astype(np.int32)),
+                        shape=(n, n))  # fmt: skip
+    out.has_sorted_indices = True
+    return out
+
+
 def communication_graph(
     positions: np.ndarray, radius: float | None = None, k_nearest: int | None = None
 ) -> sp.csr_matrix:
     """Symmetric 0/1 adjacency of the robots' communication graph, no self-loops.
+
+    Radius graphs come from a compiled cell list (:func:`_radius_neighbours`), k-nearest
+    graphs from ``scipy.spatial.cKDTree`` and a compiled symmetrisation; tests compare
+    both with brute-force distance matrices.
 
     Args:
         positions: Robot positions ``(2, N)`` (length).
@@ -135,33 +237,29 @@ def communication_graph(
     """
     if (radius is None) == (k_nearest is None):
         raise ValueError("give exactly one of radius and k_nearest")
-    pts = np.asarray(positions, dtype=float).T
-    n = pts.shape[0]
-    tree = cKDTree(pts)
+    pts = np.asarray(positions, dtype=float)
+    n = pts.shape[1]
     if radius is not None:
         if not radius >= 0:
             raise ValueError(f"radius must be >= 0, got {radius}")
-        pairs = tree.query_pairs(radius, output_type="ndarray")
-        rows, cols = pairs[:, 0], pairs[:, 1]
+        if n == 0:
+            return sp.csr_matrix((0, 0))
+        indptr, indices = _radius_neighbours(
+            np.ascontiguousarray(pts[0]), np.ascontiguousarray(pts[1]), float(radius)
+        )
     else:
         assert k_nearest is not None
         k = min(int(k_nearest), n - 1)
         if k < 0:
             raise ValueError(f"k_nearest must be >= 0, got {k_nearest}")
         if k == 0:
-            rows = cols = np.empty(0, dtype=np.intp)
+            rows = cols = np.empty(0, dtype=np.int64)
         else:
-            _, idx = tree.query(pts, k + 1)
-            rows = np.repeat(np.arange(n), k)
-            cols = idx[:, 1:].ravel()  # the first neighbour is the robot itself
-    # symmetrise: both orientations, duplicates (mutual k-nearest) merged; no self-loops
-    keep = rows != cols
-    r2 = np.concatenate([rows[keep], cols[keep]])
-    c2 = np.concatenate([cols[keep], rows[keep]])
-    key = np.unique(r2.astype(np.int64) * n + c2)
-    r2, c2 = key // n, key % n
-    indptr = np.searchsorted(r2, np.arange(n + 1))
-    return sp.csr_matrix((np.ones(key.size), c2.astype(np.int32), indptr), shape=(n, n))
+            _, idx = cKDTree(pts.T).query(pts.T, k + 1)
+            rows = np.repeat(np.arange(n, dtype=np.int64), k)
+            cols = idx[:, 1:].ravel().astype(np.int64)  # the first is the robot itself
+        indptr, indices = _symmetric_csr(n, rows, cols)
+    return _csr(indptr, indices, np.ones(indices.size), n)
 
 
 def laplacian(adj: sp.csr_matrix) -> sp.csr_matrix:
@@ -191,20 +289,57 @@ def algebraic_connectivity(adj: sp.csr_matrix, dense_max: int = 400) -> float:
     return float(np.sort(vals)[1])
 
 
+@numba.njit(cache=True, nogil=True)
+def _weights_csr(indptr, indices, eps):  # pragma: no cover - compiled
+    """``W = I - eps L`` for a 0/1 adjacency in CSR (sorted rows): each row gets its
+    diagonal ``1 - eps deg_i`` inserted in order; off-diagonal entries are ``eps``.
+    """
+    n = indptr.size - 1
+    out_ptr = indptr + np.arange(n + 1)
+    out_idx = np.empty(out_ptr[n], dtype=np.int32)
+    out_val = np.full(out_ptr[n], eps)
+    for i in range(n):
+        pos = out_ptr[i]
+        placed = False
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            if not placed and j > i:
+                out_idx[pos] = i
+                out_val[pos] = 1.0 - eps * (indptr[i + 1] - indptr[i])
+                pos += 1
+                placed = True
+            out_idx[pos] = j
+            pos += 1
+        if not placed:
+            out_idx[pos] = i
+            out_val[pos] = 1.0 - eps * (indptr[i + 1] - indptr[i])
+    return out_ptr, out_idx, out_val
+
+
 def consensus_weights(adj: sp.csr_matrix, gain: float = 1.0) -> tuple[sp.csr_matrix, float]:
     """``W = I - eps L`` with ``eps = gain / (1 + d_max)`` (see the module docstring).
 
+    Compiled (:func:`_weights_csr`) for a canonical 0/1 adjacency, scipy otherwise.
+
     Returns:
         ``(W, eps)``; ``W`` is symmetric, doubly stochastic and non-negative for
-        ``0 < gain <= 1``.
+        ``0 < gain <= 1``; its off-diagonal entries all equal ``eps``.
     """
     if not 0 < gain <= 1:
         raise ValueError(f"consensus gain must be in (0, 1], got {gain}")
-    deg = np.asarray(adj.sum(axis=1)).ravel()
-    eps = gain / (1.0 + (deg.max() if deg.size else 0.0))
-    w = (sp.identity(adj.shape[0], format="csr") - eps * laplacian(adj)).tocsr()
+    n = adj.shape[0]
+    deg = np.diff(adj.indptr) if adj.format == "csr" else None
+    canonical = (
+        deg is not None and adj.has_canonical_format and bool(np.all(adj.data == 1.0))
+    )
+    if not canonical:
+        deg = np.asarray(adj.sum(axis=1)).ravel()
+    eps = float(gain / (1.0 + (deg.max() if deg.size else 0.0)))
+    if canonical:
+        return _csr(*_weights_csr(adj.indptr, adj.indices, eps), n), eps
+    w = (sp.identity(n, format="csr") - eps * laplacian(adj)).tocsr()
     w.sort_indices()
-    return w, float(eps)
+    return w, eps
 
 
 # --------------------------------------------------------------------------------------
@@ -225,6 +360,152 @@ def _spmm(indptr, indices, data, z, out):  # pragma: no cover - compiled
             w = data[k]
             for c in range(f):
                 out[i, c] += w * z[j, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _hilbert_keys(px, py, bits):  # pragma: no cover - compiled
+    """Index along a Hilbert curve of order ``bits`` through the bounding box of the
+    points (the usual ``xy2d``: quadrant digit, then rotate/reflect the sub-square).
+    """
+    n = px.size
+    side = 1 << bits
+    x0, y0 = px.min(), py.min()
+    ext = max(px.max() - x0, py.max() - y0, 1e-300)
+    keys = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        x = min(int((px[i] - x0) / ext * side), side - 1)
+        y = min(int((py[i] - y0) / ext * side), side - 1)
+        d = 0
+        s = side >> 1
+        while s > 0:
+            rx = 1 if (x & s) > 0 else 0
+            ry = 1 if (y & s) > 0 else 0
+            d += s * s * ((3 * rx) ^ ry)
+            if ry == 0:
+                if rx == 1:
+                    x = side - 1 - x
+                    y = side - 1 - y
+                x, y = y, x
+            s >>= 1
+        keys[i] = d
+    return keys
+
+
+def spatial_order(positions: np.ndarray, bits: int = 10) -> np.ndarray:
+    """Robots sorted along a Hilbert curve (consecutive robots are close in space)."""
+    pts = np.asarray(positions, dtype=float)
+    if pts.shape[1] == 0:
+        return np.empty(0, dtype=np.intp)
+    keys = _hilbert_keys(np.ascontiguousarray(pts[0]), np.ascontiguousarray(pts[1]), bits)
+    return np.argsort(keys, kind="stable")
+
+
+@numba.njit(cache=True, nogil=True)
+def _uniform_offdiagonal(indptr, indices, data):  # pragma: no cover - compiled
+    """The common value of all off-diagonal entries of a CSR matrix, or NaN if they
+    differ (0 when there are none).
+    """
+    val = np.nan
+    for i in range(indptr.size - 1):
+        for k in range(indptr[i], indptr[i + 1]):
+            if indices[k] != i:
+                if val != val:
+                    val = data[k]
+                elif data[k] != val:
+                    return np.nan
+    return 0.0 if val != val else val
+
+
+@numba.njit(cache=True, nogil=True)
+def _symmetric_difference(indices, a0, a1, b0, b1, i, prev, z, s, apply, limit):  # pragma: no cover
+    """Walk the sorted rows ``a0:a1`` (robot ``i``) and ``b0:b1`` (robot ``prev``) of a
+    matrix with diagonal entries: the open neighbourhoods ``N(i) = row(i) \\ {i}``,
+    ``N(prev) = row(prev) \\ {prev}``. Returns the size of their symmetric difference
+    (stopping at ``limit``); with ``apply`` also ``s += sum_{N(i) \\ N(prev)} z_j -
+    sum_{N(prev) \\ N(i)} z_j``.
+    """
+    big = np.iinfo(np.int64).max
+    ka, kb, cnt = a0, b0, 0
+    f = z.shape[1]
+    while (ka < a1 or kb < b1) and cnt < limit:
+        ja = indices[ka] if ka < a1 else big
+        jb = indices[kb] if kb < b1 else big
+        add = -1
+        sub = -1
+        if ja == jb:  # in both rows: differs only for i itself and prev itself
+            if ja == i:
+                sub = ja
+            elif ja == prev:
+                add = ja
+            ka += 1
+            kb += 1
+        elif ja < jb:  # only in row(i)
+            if ja != i:
+                add = ja
+            ka += 1
+        else:  # only in row(prev)
+            if jb != prev:
+                sub = jb
+            kb += 1
+        if add >= 0:
+            cnt += 1
+            if apply:
+                for c in range(f):
+                    s[c] += z[add, c]
+        if sub >= 0:
+            cnt += 1
+            if apply:
+                for c in range(f):
+                    s[c] -= z[sub, c]
+    return cnt
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _mix_uniform(indptr, indices, data, eps, order, chunk, z, out):  # pragma: no cover
+    """``out = W z`` for ``W`` whose off-diagonal entries all equal ``eps``:
+    ``out_i = w_ii z_i + eps S_i`` with the neighbour sum ``S_i = sum_{j ~ i} z_j``.
+
+    Robots are visited in ``order`` (a space-filling curve) in chunks of ``chunk``; in a
+    chunk, ``S_i`` is updated from the previous robot's ``S`` by the symmetric
+    difference of their neighbourhoods (``S_i = S_prev + sum_{N(i) \\ N(prev)} z_j -
+    sum_{N(prev) \\ N(i)} z_j``) whenever that is shorter than ``N(i)``, and summed
+    directly otherwise; each chunk starts directly. Chunks are fixed, so the result
+    does not depend on the number of threads. Rows of ``W`` must be sorted and hold
+    the diagonal.
+    """
+    n, f = z.shape
+    nch = (n + chunk - 1) // chunk
+    for ch in numba.prange(nch):
+        s = np.zeros(f)
+        prev = -1
+        for kk in range(ch * chunk, min(n, (ch + 1) * chunk)):
+            i = order[kk]
+            a0, a1 = indptr[i], indptr[i + 1]
+            diag = 0.0
+            deg = 0
+            for k in range(a0, a1):
+                if indices[k] == i:
+                    diag = data[k]
+                else:
+                    deg += 1
+            direct = True
+            if prev >= 0:
+                b0, b1 = indptr[prev], indptr[prev + 1]
+                cnt = _symmetric_difference(indices, a0, a1, b0, b1, i, prev, z, s, False, deg)
+                if cnt < deg:
+                    direct = False
+                    _symmetric_difference(indices, a0, a1, b0, b1, i, prev, z, s, True, deg)
+            if direct:
+                for c in range(f):
+                    s[c] = 0.0
+                for k in range(a0, a1):
+                    j = indices[k]
+                    if j != i:
+                        for c in range(f):
+                            s[c] += z[j, c]
+            for c in range(f):
+                out[i, c] = diag * z[i, c] + eps * s[c]
+            prev = i
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
@@ -488,6 +769,11 @@ class DynamicAverageConsensus:
         gradient: Track the kernel's gradient as well (``F = 3``) or not (``F = 1``).
         rounds: Consensus rounds per step ``m >= 1``.
         gain: ``eps = gain / (1 + d_max)``, ``0 < gain <= 1``.
+        initial_rounds: Rounds ``m_0 >= 0`` at ``t = 0``, before the first estimate:
+            ``z(0) = W_0^{m_0} phi(0)`` (default ``m``). With one round per step each
+            robot's first estimate is nearly its own kernel; ``m_0`` rounds bring the
+            disagreement down by ``rho^{m_0}`` before the robots start moving.
+        chunk: Robots per chunk of the neighbour-sum product (:func:`_mix_uniform`).
     """
 
     def __init__(
@@ -497,11 +783,17 @@ class DynamicAverageConsensus:
         gradient: bool = False,
         rounds: int = 1,
         gain: float = 1.0,
+        initial_rounds: int | None = None,
+        chunk: int = 32,
     ) -> None:
         if rounds < 1:
             raise ValueError(f"consensus rounds must be >= 1, got {rounds}")
+        initial_rounds = rounds if initial_rounds is None else int(initial_rounds)
+        if initial_rounds < 0:
+            raise ValueError(f"initial rounds must be >= 0, got {initial_rounds}")
         self.grid, self.bandwidth, self.gradient = grid, bandwidth, gradient
         self.rounds, self.gain = int(rounds), gain
+        self.initial_rounds, self.chunk = initial_rounds, int(chunk)
         self.fields = 3 if gradient else 1
         self.z: np.ndarray | None = None
         self._buf: np.ndarray | None = None
@@ -524,20 +816,32 @@ class DynamicAverageConsensus:
             # a column block of z (strided rows): the kernel takes any layout
             _add_kernel_increment(self.z[:, f * m : (f + 1) * m], a, b, oa, ob, sign)
 
-    def _mix(self, w: sp.csr_matrix) -> None:
+    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray) -> None:
+        """``z <- W^rounds z``: by neighbour sums along a space-filling curve
+        (:func:`_mix_uniform`) when ``W``'s off-diagonal entries are all equal (always
+        for :func:`consensus_weights`), by the general sparse product otherwise.
+        """
         assert self.z is not None and self._buf is not None
-        for _ in range(self.rounds):
-            _spmm(w.indptr, w.indices, w.data, self.z, self._buf)
+        if not w.has_sorted_indices:
+            w = w.copy()
+            w.sort_indices()
+        eps = _uniform_offdiagonal(w.indptr, w.indices, w.data)
+        order = spatial_order(positions) if np.isfinite(eps) else None
+        for _ in range(rounds):
+            if order is not None:
+                _mix_uniform(w.indptr, w.indices, w.data, eps, order, self.chunk, self.z, self._buf)
+            else:
+                _spmm(w.indptr, w.indices, w.data, self.z, self._buf)
             self.z, self._buf = self._buf, self.z
 
     def initialize(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
-        """``z(0) = W^m phi(0)``; returns ``z`` ``(N, F M)``."""
+        """``z(0) = W^{m_0} phi(0)`` (``m_0`` initial rounds); returns ``z`` ``(N, F M)``."""
         n = positions.shape[1]
         self.z = np.zeros((n, self.fields * self.grid.size))
         self._buf = np.empty_like(self.z)
         self._factors = kernel_factors(self.grid, positions, self.bandwidth)
         self._increment(self._factors, None)
-        self._mix(w)
+        self._mix(w, self.initial_rounds, positions)
         return self.z
 
     def step(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
@@ -546,7 +850,7 @@ class DynamicAverageConsensus:
         factors = kernel_factors(self.grid, positions, self.bandwidth)
         self._increment(factors, self._factors)
         self._factors = factors
-        self._mix(w)
+        self._mix(w, self.rounds, positions)
         return self.z
 
     def reference_step(
