@@ -417,10 +417,10 @@ def _uniform_offdiagonal(indptr, indices, data):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def _symmetric_difference(indices, a0, a1, b0, b1, i, prev, z, s, apply, limit):  # pragma: no cover
     """Walk the sorted rows ``a0:a1`` (robot ``i``) and ``b0:b1`` (robot ``prev``) of a
-    matrix with diagonal entries: the open neighbourhoods ``N(i) = row(i) \\ {i}``,
-    ``N(prev) = row(prev) \\ {prev}``. Returns the size of their symmetric difference
-    (stopping at ``limit``); with ``apply`` also ``s += sum_{N(i) \\ N(prev)} z_j -
-    sum_{N(prev) \\ N(i)} z_j``.
+    matrix with diagonal entries: the open neighbourhoods ``N(i) = row(i) - {i}``,
+    ``N(prev) = row(prev) - {prev}``. Returns the size of their symmetric difference
+    (stopping at ``limit``); with ``apply`` also ``s += sum_{N(i) - N(prev)} z_j -
+    sum_{N(prev) - N(i)} z_j``.
     """
     big = np.iinfo(np.int64).max
     ka, kb, cnt = a0, b0, 0
@@ -465,8 +465,8 @@ def _mix_uniform(indptr, indices, data, eps, order, chunk, z, out):  # pragma: n
 
     Robots are visited in ``order`` (a space-filling curve) in chunks of ``chunk``; in a
     chunk, ``S_i`` is updated from the previous robot's ``S`` by the symmetric
-    difference of their neighbourhoods (``S_i = S_prev + sum_{N(i) \\ N(prev)} z_j -
-    sum_{N(prev) \\ N(i)} z_j``) whenever that is shorter than ``N(i)``, and summed
+    difference of their neighbourhoods (``S_i = S_prev + sum_{N(i) - N(prev)} z_j -
+    sum_{N(prev) - N(i)} z_j``) whenever that is shorter than ``N(i)``, and summed
     directly otherwise; each chunk starts directly. Chunks are fixed, so the result
     does not depend on the number of threads. Rows of ``W`` must be sorted and hold
     the diagonal.
@@ -813,7 +813,8 @@ class RowSolver:
     def solve_rows(self, x: np.ndarray) -> np.ndarray:
         """``A^{-1} x_i`` for every row ``x_i``, shape ``(N, M)``; in ``chunks`` blocks
         of rows, by default blocks of ``width`` rows (a block's work array stays in
-        cache)."""
+        cache).
+        """
         b = np.ascontiguousarray(x.T)
         chunks = self.chunks or max(1, -(-b.shape[1] // self.width))
         return np.ascontiguousarray(_lu_solve_columns(*self._args, b, chunks).T)
