@@ -19,12 +19,20 @@ Dynamic average consensus (first-order form). Each robot keeps ``z_i`` (``F`` fi
 ``M`` cells: its kernel, and with the per-robot gradient filter also the kernel's two
 analytic derivatives). With ``W_t = I - eps_t L_t`` and ``m`` rounds per step,
 
-    z_i(0)     = [W_0^m phi(0)]_i,
+    z_i(0)     = [W_0^{m_0} phi(0)]_i,
     z(t + 1)   = W_{t+1}^m ( z(t) + phi(t + 1) - phi(t) )                          (DAC)
 
-(rows are robots; ``phi(t)`` the ``N x FM`` matrix of the robots' kernels at ``X(t)``).
-Robot ``i`` needs ``z_j`` of its neighbours once per round: one message of ``F M`` floats
-per neighbour per round.
+(rows are robots; ``phi(t)`` the ``N x FM`` matrix of the robots' kernels at ``X(t)``;
+``m_0`` the ``initial_rounds``, by default ``m``: with ``m_0 >> 1`` the robots agree
+before they start moving). Robot ``i`` needs ``z_j`` of its neighbours once per round:
+one message of ``F M`` floats per neighbour per round.
+
+*Computing* ``W z``. All off-diagonal weights equal ``eps``, so ``(W z)_i = w_ii z_i +
+eps S_i`` with the neighbour sum ``S_i``; visiting the robots along a Hilbert curve,
+consecutive robots have nearly the same neighbours and ``S_i`` is the previous robot's
+sum corrected by the symmetric difference of the two neighbourhoods
+(:func:`_mix_uniform`, restarted every 32 robots): about ``4 r delta`` times the robot
+density row operations instead of ``deg_i`` (``delta`` the step along the curve).
 
 *Invariant.* ``L`` is symmetric with zero row and column sums, so ``1^T W = 1^T`` for
 every graph and gain: ``1^T z(t + 1) = 1^T z(t) + 1^T phi(t + 1) - 1^T phi(t)``, and by
@@ -70,9 +78,14 @@ and its error is the ISS bound above.
 
 Per-robot filters. Each robot runs the density filter of :mod:`harness.filters.local`
 on ``y_i = z_i`` (density part): the same predict (exact state transition ``(I - dt
-A)^{-1}`` by the same Neumann series, variances by ``F1 o F1``) and diagonal update with
-``R = r_scale k diag(max(y_i, r_floor))``, vectorised over robots (compiled loop, one
-robot per iteration, arrays ``(N, M)``). The gradient estimate is either
+A)^{-1}``, variances by ``F1 o F1``) and diagonal update with ``R = r_scale k
+diag(max(y_i, r_floor))``, vectorised over robots (compiled loop, one robot per
+iteration, arrays ``(N, M)``). ``A`` is a 5-point operator, applied as fixed-offset
+stencils on padded fields (:func:`stencil_coefficients`); the implicit predict is
+solved by Jacobi sweeps with an a posteriori stop at a remainder below ``1e-15 ||x||_1``
+(:func:`jacobi_sweeps`: ratio ``q ~ rho / 2`` against the Neumann series' ``rho``), by
+one sparse LU with triangular solves over robots beyond ``_ROBOT_MAX_SWEEPS``. The
+gradient estimate is either
 
 * ``gradient="grid"`` (default): ``q_hat_i = G p_hat_i``, the grid gradient of the
   robot's own density estimate; only the density kernel is tracked (``F = 1``); or
@@ -140,16 +153,39 @@ def _sort_rows_unique(indptr, indices, n):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
+def _sorted_row(buf, cnt, mark, out):  # pragma: no cover - compiled
+    """Write the ``cnt`` distinct indices ``buf[:cnt]`` to ``out`` in increasing order:
+    a sort for short rows, a scan of the byte map ``mark`` (length ``N``, left all
+    zero) for long ones.
+    """
+    n = mark.size
+    if cnt * (np.log2(cnt + 1.0) + 1.0) * 4.0 < n:
+        out[:cnt] = np.sort(buf[:cnt])
+        return
+    for k in range(cnt):
+        mark[buf[k]] = 1
+    pos = 0
+    for j in range(n):
+        if mark[j]:
+            out[pos] = j
+            pos += 1
+            mark[j] = 0
+
+
+@numba.njit(cache=True, nogil=True)
 def _radius_neighbours(px, py, radius):  # pragma: no cover - compiled
     """CSR (sorted rows) of the pairs ``i != j`` with ``sqrt(dx^2 + dy^2) <= radius``
-    (the expression of ``scipy.spatial.distance.cdist``), by a cell list of square
-    buckets of side ``>= radius``: a robot's neighbours are in its bucket's 3 x 3 block.
+    (the expression of ``scipy.spatial.distance.cdist``; ``dx^2 + dy^2`` decides unless
+    it is within ``1e-12`` of ``radius^2``), by a cell list of square buckets of side
+    ``>= radius / 2``: a robot's neighbours are in the 5 x 5 block of buckets around its
+    own, less the buckets whose nearest point is farther than ``radius``.
     """
     n = px.size
     x0, y0 = px.min(), py.min()
     ext = max(px.max() - x0, py.max() - y0, 1e-300)
-    nb = max(1, min(int(ext / max(radius, 1e-300)), 256))  # buckets per side
+    nb = max(1, min(int(2.0 * ext / max(radius, 1e-300)), 512))  # buckets per side
     side = ext / nb
+    reach = min(int(np.ceil(radius / side * (1.0 + 1e-9))), nb)  # buckets on each side
     bx = np.minimum(((px - x0) / side).astype(np.int64), nb - 1)
     by = np.minimum(((py - y0) / side).astype(np.int64), nb - 1)
     bucket = by * nb + bx
@@ -160,32 +196,48 @@ def _radius_neighbours(px, py, radius):  # pragma: no cover - compiled
         start[b + 1] += start[b]
     fill = start[:-1].copy()
     members = np.empty(n, dtype=np.int64)
-    for i in range(n):  # in index order: every bucket's members are sorted
-        members[fill[bucket[i]]] = i
+    sx = np.empty(n)
+    sy = np.empty(n)
+    for i in range(n):
+        k = fill[bucket[i]]
+        members[k], sx[k], sy[k] = i, px[i], py[i]
         fill[bucket[i]] += 1
+    r2lo = radius * radius * (1.0 - 1e-12)
+    r2hi = radius * radius * (1.0 + 1e-12)
     indptr = np.zeros(n + 1, dtype=np.int64)
-    for sweep in range(2):  # count, then fill
-        indices = np.empty(indptr[n] if sweep else 0, dtype=np.int32)
-        for i in range(n):
-            pos = indptr[i]
-            cnt = 0
-            for cy in range(max(by[i] - 1, 0), min(by[i] + 2, nb)):
-                for cx in range(max(bx[i] - 1, 0), min(bx[i] + 2, nb)):
-                    b = cy * nb + cx
-                    for k in range(start[b], start[b + 1]):
+    indices = np.empty(max(16 * n, 1024), dtype=np.int32)
+    buf = np.empty(n, dtype=np.int64)
+    mark = np.zeros(n, dtype=np.uint8)
+    for i in range(n):
+        cnt = 0
+        xi, yi = px[i], py[i]
+        for cy in range(max(by[i] - reach, 0), min(by[i] + reach + 1, nb)):
+            # gaps to the bucket, less a margin for the rounding of the bucket bounds
+            gy = max(y0 + cy * side - yi, yi - (y0 + (cy + 1) * side)) - 1e-9 * ext
+            gy = max(gy, 0.0)
+            for cx in range(max(bx[i] - reach, 0), min(bx[i] + reach + 1, nb)):
+                gx = max(x0 + cx * side - xi, xi - (x0 + (cx + 1) * side)) - 1e-9 * ext
+                gx = max(gx, 0.0)
+                if gx * gx + gy * gy > r2hi:  # the whole bucket is out of reach
+                    continue
+                b = cy * nb + cx
+                for k in range(start[b], start[b + 1]):
+                    dx = xi - sx[k]
+                    dy = yi - sy[k]
+                    s = dx * dx + dy * dy
+                    if s <= r2lo or (s <= r2hi and np.sqrt(s) <= radius):
                         j = members[k]
-                        dx = px[i] - px[j]
-                        dy = py[i] - py[j]
-                        if j != i and np.sqrt(dx * dx + dy * dy) <= radius:
-                            if sweep:
-                                indices[pos + cnt] = j
+                        if j != i:
+                            buf[cnt] = j
                             cnt += 1
-            if not sweep:
-                indptr[i + 1] = indptr[i] + cnt
-        if sweep:
-            for i in range(n):
-                indices[indptr[i] : indptr[i + 1]] = np.sort(indices[indptr[i] : indptr[i + 1]])
-    return indptr, indices
+        pos = indptr[i]
+        if pos + cnt > indices.size:
+            grown = np.empty(max(2 * indices.size, pos + cnt), dtype=np.int32)
+            grown[:pos] = indices[:pos]
+            indices = grown
+        _sorted_row(buf, cnt, mark, indices[pos : pos + cnt])
+        indptr[i + 1] = pos + cnt
+    return indptr, indices[: indptr[n]].copy()
 
 
 @numba.njit(cache=True, nogil=True)
@@ -570,35 +622,44 @@ def _stencil_apply(coef, nx, src, out):  # pragma: no cover - compiled
 def _jacobi_sweep(coef, dinv, nx, b, src, out):  # pragma: no cover - compiled
     """``out = D^{-1} (b + O src)``: one Jacobi sweep for ``(I - dt A) x = b`` with
     ``D = 1 - dt a_rr`` and ``O`` the off-diagonal part of ``dt A`` (rows 1..4 of the
-    stencil ``coef``); ``src`` and ``out`` padded as in :func:`_stencil_apply`.
+    stencil ``coef``); ``src`` and ``out`` padded as in :func:`_stencil_apply`. Returns
+    ``||D (out - src)||_1``, the 1-norm of the series term the sweep added.
     """
     m = b.size
-    cw, ce, cs, cn = coef[1], coef[2], coef[3], coef[4]
-    sw, se = src[nx - 1 : nx - 1 + m], src[nx + 1 : nx + 1 + m]
+    c0, cw, ce, cs, cn = coef[0], coef[1], coef[2], coef[3], coef[4]
+    sc, sw, se = src[nx : nx + m], src[nx - 1 : nx - 1 + m], src[nx + 1 : nx + 1 + m]
     ss, sn = src[:m], src[2 * nx : 2 * nx + m]
     oc = out[nx : nx + m]
+    change = 0.0
     for r in range(m):
-        oc[r] = dinv[r] * (b[r] + cw[r] * sw[r] + ce[r] * se[r] + cs[r] * ss[r] + cn[r] * sn[r])
+        t = b[r] + cw[r] * sw[r] + ce[r] * se[r] + cs[r] * ss[r] + cn[r] * sn[r]
+        oc[r] = dinv[r] * t
+        change += abs(t - (1.0 - c0[r]) * sc[r])
+    return change
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
 def _density_filter_stencil(
-    x, d, y, coef, dinv, sqcoef, nx, sweeps, qk, rk, r_floor, chunk
+    x, d, y, coef, dinv, sqcoef, nx, q, max_sweeps, qk, rk, r_floor, chunk
 ):  # pragma: no cover - compiled
     """Per robot ``i`` (rows), in place, the density part of ``LocalFilters.step``:
 
-    x^- = (I - dt A)^{-1} x     by ``sweeps`` Jacobi sweeps from D^{-1} x
-                                (none when ``sweeps < 0``: ``x`` is predicted already),
+    x^- = (I - dt A)^{-1} x     by Jacobi sweeps from D^{-1} x (see
+                                :func:`jacobi_sweeps`) until the remainder bound
+                                ``q / (1 - q) ||term||_1 <= 1e-15 ||x||_1`` holds, at
+                                most ``max_sweeps`` (none when ``max_sweeps < 0``:
+                                ``x`` is predicted already),
     d^- = (F1 o F1) d + q dt k,
     r = r_scale k max(y, r_floor),  d = 1 / (1/d^- + 1/r),  x = x^- + d / r (y - x^-),
 
     with ``dt A`` and ``F1 o F1`` as 5-point stencils (``coef``, ``sqcoef``, see
     :func:`stencil_coefficients`) and ``dinv = 1 / (1 - dt a_rr)``. Robots in fixed
-    chunks (buffers reused); each robot's arithmetic is fixed, so the result does not
-    depend on the number of threads.
+    chunks (buffers reused); each robot's arithmetic depends on its own data only, so
+    the result does not depend on the number of threads.
     """
     n, m = x.shape
     nch = (n + chunk - 1) // chunk
+    ratio = q / (1.0 - q)
     for ch in numba.prange(nch):
         pa = np.zeros(m + 2 * nx)
         pb = np.zeros(m + 2 * nx)
@@ -609,12 +670,17 @@ def _density_filter_stencil(
             xi, di, yi = x[i], d[i], y[i]
             src, dst = pa, pb
             xc = src[nx : nx + m]
+            norm = 0.0
             for r in range(m):
                 dc[r] = di[r]
-                xc[r] = xi[r] * dinv[r] if sweeps >= 0 else xi[r]
-            for _ in range(max(sweeps, 0)):
-                _jacobi_sweep(coef, dinv, nx, xi, src, dst)
+                xc[r] = xi[r] * dinv[r] if max_sweeps >= 0 else xi[r]
+                norm += abs(xi[r])
+            term = norm  # ||y_0||_1 = ||x||_1
+            k = 0
+            while k < max_sweeps and ratio * term > 1e-15 * norm:
+                term = _jacobi_sweep(coef, dinv, nx, xi, src, dst)
                 src, dst = dst, src
+                k += 1
             xc = src[nx : nx + m]
             _stencil_apply(sqcoef, nx, pd, tmp)
             for c in range(m):
@@ -626,9 +692,17 @@ def _density_filter_stencil(
                 xi[c] = xc[c] + dm * inv * (yi[c] - xc[c])
 
 
+def jacobi_ratio(coef: np.ndarray) -> float:
+    """``q = max_r dt |a_rr| / (1 + dt |a_rr|)``, the contraction of the Jacobi sweeps
+    (see :func:`jacobi_sweeps`); ``coef`` from :func:`stencil_coefficients`.
+    """
+    c0 = coef[0]
+    return float(np.max(-c0 / (1.0 - c0), initial=0.0))
+
+
 def jacobi_sweeps(coef: np.ndarray) -> int:
-    """Jacobi sweeps ``K`` for ``(I - dt A) x = b`` to a remainder below ``1e-15
-    ||b||_1``.
+    """A priori number of Jacobi sweeps ``K`` for ``(I - dt A) x = b`` to a remainder
+    below ``1e-15 ||b||_1``.
 
     With ``D = diag(1 - dt a_rr)`` (``>= 1``) and ``O`` the off-diagonal part of ``dt
     A`` (``>= 0``, column ``r`` summing to ``dt |a_rr|`` since the columns of ``A`` sum
@@ -637,9 +711,12 @@ def jacobi_sweeps(coef: np.ndarray) -> int:
     sum the series to ``k = K``; the remainder is at most ``q^{K+1} / (1 - q) ||b||_1``
     (``_series_terms(q)``), and ``|x - x_K| <= |y - y_K|`` as ``D >= 1``. About half the
     Neumann terms of ``sum (dt A)^k`` (whose ratio is ``rho = 2 max dt |a_rr|``).
+
+    A posteriori: the ``k``-th term ``T^k b`` bounds the rest by ``q / (1 - q)
+    ||T^k b||_1`` (each further term shrinks by ``q`` at least), so the filter stops
+    as soon as that is below ``1e-15 ||b||_1``, never later than ``K``.
     """
-    c0 = coef[0]
-    return _series_terms(float(np.max(-c0 / (1.0 - c0), initial=0.0)))
+    return _series_terms(jacobi_ratio(coef))
 
 
 def stencil_coefficients(grid: Grid, a: sp.csr_matrix, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1108,8 +1185,8 @@ class RobotFilters:
         q = s.process_noise * dt
         y = np.ascontiguousarray(y, dtype=float)
         _density_filter_stencil(
-            self.x, self.d, y, coef, 1.0 / (1.0 - coef[0]), sqcoef, g.nx, sweeps,
-            q * k, s.r_scale * k, s.r_floor, 16,
+            self.x, self.d, y, coef, 1.0 / (1.0 - coef[0]), sqcoef, g.nx,
+            jacobi_ratio(coef), sweeps, q * k, s.r_scale * k, s.r_floor, 16,
         )  # fmt: skip
         if self.gradient == "filter":
             assert self.x_g is not None and self.c_g is not None and y_g is not None
@@ -1343,6 +1420,8 @@ class DistributedEstimator:
         rounds: Consensus rounds per step.
         gain: Consensus gain factor in ``(0, 1]``.
         gradient: ``"grid"`` or ``"filter"`` (see the module docstring).
+        initial_rounds: Consensus rounds at ``t = 0`` before the first estimate
+            (default ``rounds``; see :class:`DynamicAverageConsensus`).
     """
 
     def __init__(
@@ -1357,13 +1436,15 @@ class DistributedEstimator:
         rounds: int = 1,
         gain: float = 1.0,
         gradient: str = "grid",
+        initial_rounds: int | None = None,
     ) -> None:
         if (radius is None) == (k_nearest is None):
             raise ValueError("give exactly one of radius and k_nearest")
         self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
         self.consensus = DynamicAverageConsensus(
-            grid, bandwidth, gradient=gradient == "filter", rounds=rounds, gain=gain
-        )
+            grid, bandwidth, gradient=gradient == "filter", rounds=rounds, gain=gain,
+            initial_rounds=initial_rounds,
+        )  # fmt: skip
         self.filters = RobotFilters(
             grid, dt, MeasurementModel(n_robots, bandwidth, settings), gradient
         )

@@ -356,3 +356,88 @@ def test_row_solver_matches_superlu(rng):
     for chunks in (1, 3, 8):
         got = RowSolver(system, chunks=chunks).solve_rows(x)
         np.testing.assert_allclose(got, expected, atol=1e-13 * abs(expected).max())
+
+
+# --- initial rounds, graph ties, thread independence -----------------------------------
+
+
+@pytest.mark.parametrize("initial_rounds", [0, 1, 7, 60])
+def test_initial_rounds_mix_the_first_kernels_by_the_matrix_power(initial_rounds):
+    """``z(0) = W^{m_0} phi(0)``: against a dense matrix power (numpy), and the
+    disagreement is bounded by ``rho^{m_0}`` times the kernels' (ring graph, analytic
+    spectrum)."""
+    n = 16
+    g = Grid(7, 6)
+    pos = _ring(n)
+    adj = communication_graph(pos, k_nearest=2)
+    w, eps = consensus_weights(adj, 0.8)
+    phi = robot_kernels(g, pos, H)
+    dense = np.eye(n) - eps * (2 * np.eye(n) - adj.toarray())
+    expected = np.linalg.matrix_power(dense, initial_rounds) @ phi
+    est = DistributedEstimator(
+        g, 0.01, n, H, FilterSettings(), k_nearest=2, gain=0.8, initial_rounds=initial_rounds
+    )
+    z = est.initialize(pos).observation
+    np.testing.assert_allclose(z, expected, atol=1e-12 * abs(phi).max())
+    if initial_rounds == 0:
+        np.testing.assert_array_equal(z, phi)
+    lam = 2 - 2 * np.cos(2 * np.pi * np.arange(n) / n)  # cycle graph eigenvalues
+    rho = np.max(np.abs(1 - eps * lam[1:]))
+    dev = np.linalg.norm(z - phi.mean(axis=0))
+    assert dev <= rho**initial_rounds * np.linalg.norm(phi - phi.mean(axis=0)) * (1 + 1e-9)
+    assert est.consensus.rounds == 1  # the per-step rounds are unchanged
+
+
+def test_radius_graph_on_a_lattice_keeps_exact_ties():
+    """Lattice spacing 0.05: distances equal to the radius (to round-off) decide as
+    ``cdist`` does."""
+    pts = np.stack(np.meshgrid(np.arange(20) * 0.05, np.arange(20) * 0.05)).reshape(2, -1)
+    for radius in (0.05, 0.1, np.hypot(0.05, 0.05), 0.15):
+        expected = (cdist(pts.T, pts.T) <= radius) & ~np.eye(400, dtype=bool)
+        adj = communication_graph(pts, radius=radius)
+        np.testing.assert_array_equal(adj.toarray() != 0, expected)
+        rows = np.split(adj.indices, adj.indptr[1:-1])
+        assert all((np.diff(r) > 0).all() for r in rows)  # canonical CSR
+
+
+def test_results_do_not_depend_on_the_thread_count(rng):
+    import numba
+
+    g = Grid.square(14)
+    n = 90
+    pos = Box().sample(n, g, rng)
+    fp = FokkerPlanck(g, SIGMA)
+    a = fp.matrix(VelocityField.from_centres(0.05 * rng.normal(size=(2, *g.shape))))
+    moved = np.clip(pos + 0.01 * rng.normal(size=pos.shape), 0, 1)
+    outs = []
+    before = numba.get_num_threads()
+    try:
+        for threads in (1, numba.config.NUMBA_NUM_THREADS):
+            numba.set_num_threads(threads)
+            est = DistributedEstimator(g, 0.01, n, H, FilterSettings(), radius=0.2, rounds=2)
+            est.initialize(pos)
+            outs.append(est.step(moved, a).p_hat.copy())
+    finally:
+        numba.set_num_threads(before)
+    np.testing.assert_array_equal(outs[0], outs[1])
+
+
+@pytest.mark.parametrize("radius", [0.08, 0.3, 2.0])
+def test_mixing_by_neighbour_sums_equals_the_sparse_product(rng, radius):
+    """The consensus product by sliding neighbour sums (uniform off-diagonal weights)
+    and the general one (non-uniform weights) against scipy's ``W @ z``."""
+    g = Grid(8, 7)
+    n = 300
+    pos = rng.random((2, n))
+    w, _ = consensus_weights(communication_graph(pos, radius=radius), 0.9)
+    # non-uniform off-diagonal weights: symmetric, rows still summing to one
+    off = sp.triu(w, k=1)
+    off.data *= rng.uniform(0.5, 1.0, off.nnz)
+    w_var = (off + off.T).tocsr()
+    w_var = (w_var + sp.diags(1.0 - np.asarray(w_var.sum(axis=1)).ravel())).tocsr()
+    w_var.sort_indices()
+    for weights in (w, w_var):
+        dac = DynamicAverageConsensus(g, H, rounds=2, initial_rounds=0)
+        phi = dac.initialize(pos, weights).copy()
+        z = dac.step(pos, weights)  # the kernels did not move: z = W^2 phi
+        np.testing.assert_allclose(z, weights @ (weights @ phi), atol=1e-12 * abs(phi).max())
