@@ -370,7 +370,7 @@ def test_initial_rounds_mix_the_first_kernels_by_the_matrix_power(initial_rounds
     g = Grid(7, 6)
     pos = _ring(n)
     adj = communication_graph(pos, k_nearest=2)
-    w, eps = consensus_weights(adj, 0.8)
+    _, eps = consensus_weights(adj, 0.8)
     phi = robot_kernels(g, pos, H)
     dense = np.eye(n) - eps * (2 * np.eye(n) - adj.toarray())
     expected = np.linalg.matrix_power(dense, initial_rounds) @ phi
