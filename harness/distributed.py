@@ -126,7 +126,7 @@ from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.local import squared_transition
 from harness.fokker_planck import _MAX_SERIES_TERMS, _series_terms
 from harness.grid import Grid
-from harness.kde import kernel_1d
+from harness.kde import _IMAGE_CUTOFF
 
 # --------------------------------------------------------------------------------------
 # communication graph
@@ -618,12 +618,16 @@ def _stencil_apply(coef, nx, src, out):  # pragma: no cover - compiled
         out[r] = c0[r] * sc[r] + cw[r] * sw[r] + ce[r] * se[r] + cs[r] * ss[r] + cn[r] * sn[r]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
 def _jacobi_sweep(coef, dinv, nx, b, src, out):  # pragma: no cover - compiled
     """``out = D^{-1} (b + O src)``: one Jacobi sweep for ``(I - dt A) x = b`` with
     ``D = 1 - dt a_rr`` and ``O`` the off-diagonal part of ``dt A`` (rows 1..4 of the
     stencil ``coef``); ``src`` and ``out`` padded as in :func:`_stencil_apply`. Returns
     ``||D (out - src)||_1``, the 1-norm of the series term the sweep added.
+
+    Compiled with reassociation allowed (``fastmath={"reassoc"}``) so that the norm's
+    sum vectorises; the order is fixed at compile time, the same for every robot and
+    thread count.
     """
     m = b.size
     c0, cw, ce, cs, cn = coef[0], coef[1], coef[2], coef[3], coef[4]
@@ -901,6 +905,58 @@ class RowSolver:
 # per-robot kernels
 
 
+@numba.njit(cache=True, nogil=True)
+def _gauss_run(s, c0, dx, n, h, g, dg):  # pragma: no cover - compiled
+    """``g[k] += exp(-(c_k - s)^2 / 2h^2)`` and ``dg[k] += (c_k - s) exp(...)`` on the
+    uniform centres ``c_k = c0 + k dx``: one exponential at the centre nearest ``s``,
+    then products outwards, ``E_{k+1} = E_k rho_k``, ``rho_{k+1} = rho_k a`` with
+    ``rho = exp(-(c_k - s) dx / h^2 - dx^2 / 2h^2)`` and ``a = exp(-dx^2 / h^2)`` (each
+    factor is at most 1 going away from the peak; stops below 1e-300).
+    """
+    inv_h2 = 1.0 / (h * h)
+    a = np.exp(-dx * dx * inv_h2)
+    half = 0.5 * dx * dx * inv_h2
+    k0 = min(max(int(np.floor((s - c0) / dx + 0.5)), 0), n - 1)
+    u = c0 + k0 * dx - s
+    peak = np.exp(-0.5 * u * u * inv_h2)
+    g[k0] += peak
+    dg[k0] += u * peak
+    for direction in (1, -1):
+        e = peak
+        rho = np.exp(-direction * u * dx * inv_h2 - half)
+        k = k0 + direction
+        while 0 <= k < n:
+            e *= rho
+            if e < 1e-300:
+                break
+            g[k] += e
+            dg[k] += (c0 + k * dx - s) * e
+            rho *= a
+            k += direction
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _kernel_factors_1d(points, c0, dx, n, h, lo, hi, cutoff):  # pragma: no cover
+    """Rows ``g_h(c_k - X_i)`` and ``d/dc_k`` of them with the wall images (as
+    :func:`harness.kde.kernel_1d`: images of the robots within ``cutoff h`` of a
+    wall), by :func:`_gauss_run`.
+    """
+    m = points.size
+    g = np.zeros((m, n))
+    dg = np.zeros((m, n))
+    norm = 1.0 / (np.sqrt(2.0 * np.pi) * h)
+    for i in numba.prange(m):
+        x = points[i]
+        _gauss_run(x, c0, dx, n, h, g[i], dg[i])
+        for wall in (lo, hi):
+            if abs(x - wall) < cutoff * h:
+                _gauss_run(2.0 * wall - x, c0, dx, n, h, g[i], dg[i])
+        for k in range(n):
+            g[i, k] *= norm
+            dg[i, k] *= -norm / (h * h)
+    return g, dg
+
+
 def kernel_factors(
     grid: Grid, positions: np.ndarray, bandwidth: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -909,11 +965,21 @@ def kernel_factors(
 
     Robot ``i``'s kernel on the grid is ``phi_i = outer(ky[i], kx[i])`` (1 / length^2),
     its gradient ``(outer(ky[i], dkx[i]), outer(dky[i], kx[i]))`` (1 / length^3); their
-    means over robots are :meth:`harness.kde.KDE.exact`.
+    means over robots are :meth:`harness.kde.KDE.exact`. Compiled with two exponentials
+    per robot, axis and image (:func:`_gauss_run`); :func:`harness.kde.kernel_1d` is the
+    reference (tests compare).
     """
     g = grid
-    kx, dkx = kernel_1d(positions[0], g.x, bandwidth, g.x0, g.x1, True)
-    ky, dky = kernel_1d(positions[1], g.y, bandwidth, g.y0, g.y1, True)
+    pts = np.asarray(positions, dtype=float)
+    out = []
+    for p, n, d, c, lo, hi in ((pts[0], g.nx, g.dx, g.x, g.x0, g.x1),
+                               (pts[1], g.ny, g.dy, g.y, g.y0, g.y1)):  # fmt: skip
+        out.append(
+            _kernel_factors_1d(
+                np.ascontiguousarray(p), float(c[0]), d, n, bandwidth, lo, hi, _IMAGE_CUTOFF
+            )
+        )
+    (kx, dkx), (ky, dky) = out
     return kx, dkx, ky, dky
 
 

@@ -441,3 +441,22 @@ def test_mixing_by_neighbour_sums_equals_the_sparse_product(rng, radius):
         phi = dac.initialize(pos, weights).copy()
         z = dac.step(pos, weights)  # the kernels did not move: z = W^2 phi
         np.testing.assert_allclose(z, weights @ (weights @ phi), atol=1e-12 * abs(phi).max())
+
+
+@pytest.mark.parametrize(("shape", "h"), [((30, 30), 0.04), ((17, 11), 0.1), ((64, 64), 0.01)])
+def test_compiled_kernel_factors_equal_the_kde_kernel(rng, shape, h):
+    """Products of exponentials (two per robot, axis and image) against
+    :func:`harness.kde.kernel_1d` (one exponential per value), robots on the walls too."""
+    from harness.distributed import kernel_factors
+    from harness.kde import kernel_1d
+
+    g = Grid(*shape)
+    pos = rng.random((2, 400))
+    pos[:, :3] = [[0.0, 1.0, 0.5], [1.0, 0.0, 1e-9]]
+    got = kernel_factors(g, pos, h)
+    ref = (
+        *kernel_1d(pos[0], g.x, h, g.x0, g.x1, True),
+        *kernel_1d(pos[1], g.y, h, g.y0, g.y1, True),
+    )
+    for a, b in zip(got, ref, strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-13 * abs(b).max())
