@@ -134,16 +134,17 @@ from harness.kde import _IMAGE_CUTOFF
 
 @numba.njit(cache=True, nogil=True)
 def _sort_rows_unique(indptr, indices, n):  # pragma: no cover - compiled
-    """Sort every CSR row's column indices, drop duplicates and self-loops; returns the
-    compacted ``(indptr, indices)``.
+    """Sort every row of a symmetric CSR pattern (by :func:`_transpose_pattern`), drop
+    duplicates and self-loops; returns the compacted ``(indptr, indices)``.
     """
+    srt = _transpose_pattern(indptr, indices)
     out_ptr = np.zeros(n + 1, dtype=np.int64)
     out_idx = np.empty(indices.size, dtype=np.int32)
     pos = 0
     for i in range(n):
-        row = np.sort(indices[indptr[i] : indptr[i + 1]])
         last = -1
-        for j in row:
+        for k in range(indptr[i], indptr[i + 1]):
+            j = srt[k]
             if j != last and j != i:
                 out_idx[pos] = j
                 pos += 1
@@ -153,28 +154,9 @@ def _sort_rows_unique(indptr, indices, n):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _sorted_row(buf, cnt, mark, out):  # pragma: no cover - compiled
-    """Write the ``cnt`` distinct indices ``buf[:cnt]`` to ``out`` in increasing order:
-    a sort for short rows, a scan of the byte map ``mark`` (length ``N``, left all
-    zero) for long ones.
-    """
-    n = mark.size
-    if cnt * (np.log2(cnt + 1.0) + 1.0) * 4.0 < n:
-        out[:cnt] = np.sort(buf[:cnt])
-        return
-    for k in range(cnt):
-        mark[buf[k]] = 1
-    pos = 0
-    for j in range(n):
-        if mark[j]:
-            out[pos] = j
-            pos += 1
-            mark[j] = 0
-
-
-@numba.njit(cache=True, nogil=True)
 def _radius_neighbours(px, py, radius):  # pragma: no cover - compiled
-    """CSR (sorted rows) of the pairs ``i != j`` with ``sqrt(dx^2 + dy^2) <= radius``
+    """CSR (rows sorted by :func:`_transpose_pattern`) of the pairs ``i != j`` with
+    ``sqrt(dx^2 + dy^2) <= radius``
     (the expression of ``scipy.spatial.distance.cdist``; ``dx^2 + dy^2`` decides unless
     it is within ``1e-12`` of ``radius^2``), by a cell list of square buckets of side
     ``>= radius / 2``: a robot's neighbours are in the 5 x 5 block of buckets around its
@@ -207,7 +189,6 @@ def _radius_neighbours(px, py, radius):  # pragma: no cover - compiled
     indptr = np.zeros(n + 1, dtype=np.int64)
     indices = np.empty(max(16 * n, 1024), dtype=np.int32)
     buf = np.empty(n, dtype=np.int64)
-    mark = np.zeros(n, dtype=np.uint8)
     for i in range(n):
         cnt = 0
         xi, yi = px[i], py[i]
@@ -235,9 +216,25 @@ def _radius_neighbours(px, py, radius):  # pragma: no cover - compiled
             grown = np.empty(max(2 * indices.size, pos + cnt), dtype=np.int32)
             grown[:pos] = indices[:pos]
             indices = grown
-        _sorted_row(buf, cnt, mark, indices[pos : pos + cnt])
+        indices[pos : pos + cnt] = buf[:cnt]
         indptr[i + 1] = pos + cnt
-    return indptr, indices[: indptr[n]].copy()
+    return indptr, _transpose_pattern(indptr, indices[: indptr[n]])
+
+
+@numba.njit(cache=True, nogil=True)
+def _transpose_pattern(indptr, indices):  # pragma: no cover - compiled
+    """Column indices of the transpose of a symmetric pattern (same ``indptr``), which
+    come out sorted: rows ``i`` are scattered in increasing order (a counting sort).
+    """
+    n = indptr.size - 1
+    fill = indptr[:-1].copy()
+    out = np.empty(indices.size, dtype=np.int32)
+    for i in range(n):
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            out[fill[j]] = i
+            fill[j] += 1
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
