@@ -88,6 +88,7 @@ def run(
     steps: int,
     initial_rounds: int,
     target: float | None,
+    warmup: int = 0,
 ) -> None:
     g = Grid.square(30)
     rng = np.random.default_rng(0)
@@ -101,7 +102,9 @@ def run(
     clock = Clock()
     e = clock("(initialize)", lambda: est.initialize(pos))
     sweeps = []
-    for _ in range(steps):
+    for step in range(warmup + steps):
+        if warmup and step == warmup:  # time from here on
+            clock = Clock()
         p_mean = e.p_hat.mean(axis=0).reshape(g.shape)
         q_mean = None if e.q_hat is None else e.q_hat.mean(axis=0).reshape(2, *g.shape)
 
@@ -132,13 +135,13 @@ def run(
         f"  N = {n_robots}, gradient = {gradient}, {graph}: mean degree "
         f"{counts['mean_degree']:.1f}, {counts['messages']:.1f} messages "
         f"({counts['bytes'] / 1e3:.0f} kB) per robot per step, Jacobi sweeps "
-        f"{min(sweeps)}..{max(sweeps)}{extra}"
+        f"{min(sweeps[warmup:])}..{max(sweeps[warmup:])} (a priori){extra}"
     )
     print(
         f"    memory {est.memory_bytes() / n_robots / 1e3:.1f} kB per robot "
         f"({est.memory_bytes() / 1e6:.1f} MB for the swarm)"
     )
-    clock.report(skip=2, target=target)
+    clock.report(skip=2 if warmup == 0 else 0, target=target)
 
 
 def main() -> None:
@@ -147,13 +150,17 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="numba threads")
     parser.add_argument("--initial-rounds", type=int, default=30)
     parser.add_argument(
+        "--warmup", type=int, default=0, help="untimed steps first (0: skip 2 timed steps)"
+    )
+    parser.add_argument("--only", type=int, default=None, help="run only this case (index)")
+    parser.add_argument(
         "--gradient-filter", action="store_true", help="also time gradient='filter' (slow)"
     )
     args = parser.parse_args()
     numba.set_num_threads(args.threads)
     print(
         f"numba threads {args.threads}; BLAS pinned to 1 thread; n = 30; "
-        f"initial_rounds {args.initial_rounds}"
+        f"initial_rounds {args.initial_rounds}; warmup {args.warmup} steps"
     )
     cases: list[tuple[int, str, float | None, int | None, float | None]] = [
         (1024, "grid", 0.05, None, TARGET_MS),
@@ -164,9 +171,14 @@ def main() -> None:
     ]
     if args.gradient_filter:
         cases.append((1024, "filter", 0.05, None, None))
+    if args.only is not None:
+        cases = [cases[args.only]]
     with threadpool_limits(1):
         for n_robots, gradient, radius, k, target in cases:
-            run(n_robots, gradient, radius, k, args.steps, args.initial_rounds, target)
+            run(
+                n_robots, gradient, radius, k, args.steps, args.initial_rounds, target,
+                args.warmup,
+            )  # fmt: skip
 
 
 if __name__ == "__main__":
