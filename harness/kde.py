@@ -116,6 +116,9 @@ def kernel_1d(
     return g, dg
 
 
+_kernel_1d = kernel_1d  # the former private name (kept for older callers)
+
+
 @dataclass
 class KDE:
     """Gaussian KDE of robot positions on a grid, with its analytic gradient.

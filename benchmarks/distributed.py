@@ -1,0 +1,185 @@
+"""Per-step cost of the distributed estimator and decentralised loop: `python -m
+benchmarks.distributed` (``--help`` for options).
+
+One closed-loop step at n = 30, paper scale (h = 0.04, dt = 0.01, alpha = 0.003, sigma =
+5e-5, robots from the box [0.15, 0.85]^2, ``initial_rounds`` consensus rounds before the
+robots move): communication graph (with the consensus weights), consensus (the robots'
+kernels, their increments and the mixing rounds), per-robot filters (model ``A`` from the
+law applied to the robots' mean estimate, which is the benchmark's stand-in for the
+filters' model), per-robot law, robot step; then the logged graph metrics on their own.
+Medians over steps of wall time and of process CPU time (the machine may be shared: CPU
+time is the work done; with numba's threads it sums the threads), BLAS pinned to one
+thread, numba to ``--threads`` (default 1).
+
+Targets (issue 14): the closed loop -- graph + consensus + per-robot filters + per-robot
+law (+ model and robot step) -- <= 20 ms per step (>= 50 steps/s) at N = 1024, n = 30,
+``gradient="grid"``, radius 0.05 to 0.2 and k-nearest; N = 4096 must run. Each line
+prints its figure against the target; memory is the bytes held per robot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numba
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from harness.control import paper_law
+from harness.densities import DEFAULT_TARGET, Box, Target
+from harness.distributed import (
+    DistributedEstimator,
+    algebraic_connectivity,
+    decentralised_velocities,
+    euler_maruyama_robots,
+    jacobi_sweeps,
+    message_counts,
+    n_components,
+    stencil_coefficients,
+)
+from harness.filters.common import FilterSettings
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+
+SIGMA, ALPHA, H, DT = 5e-5, 0.003, 0.04, 0.01
+TARGET_MS = 20.0
+
+
+class Clock:
+    """Wall and CPU time per named part."""
+
+    def __init__(self) -> None:
+        self.wall: dict[str, list[float]] = {}
+        self.cpu: dict[str, list[float]] = {}
+
+    def __call__(self, name, fn):
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = fn()
+        self.wall.setdefault(name, []).append(time.perf_counter() - w0)
+        self.cpu.setdefault(name, []).append(time.process_time() - c0)
+        return out
+
+    def report(self, skip: int, target: float | None) -> tuple[float, float]:
+        total_w = total_c = 0.0
+        for name in [n for n in self.wall if len(self.wall[n]) > skip]:
+            w = 1e3 * float(np.median(self.wall[name][skip:]))
+            c = 1e3 * float(np.median(self.cpu[name][skip:]))
+            if not name.startswith("("):
+                total_w, total_c = total_w + w, total_c + c
+            print(f"    {name:<34s} wall {w:8.2f} ms   cpu {c:8.2f} ms")
+        verdict = ""
+        if target is not None:
+            ok = "meets" if total_c <= target else "MISSES"
+            verdict = f"   target <= {target:.0f} ms (>= {1e3 / target:.0f} steps/s): {ok} (cpu)"
+        print(
+            f"    {'closed-loop step (sum)':<34s} wall {total_w:8.2f} ms   cpu {total_c:8.2f} ms"
+            f"{verdict}"
+        )
+        print(f"    {'steps/s':<34s} wall {1e3 / total_w:8.1f}      cpu {1e3 / total_c:8.1f}")
+        return total_w, total_c
+
+
+def run(
+    n_robots: int,
+    gradient: str,
+    radius: float | None,
+    k: int | None,
+    steps: int,
+    initial_rounds: int,
+    target: float | None,
+    warmup: int = 0,
+) -> None:
+    g = Grid.square(30)
+    rng = np.random.default_rng(0)
+    target_density = Target.from_density(g, DEFAULT_TARGET)
+    fp = FokkerPlanck(g, SIGMA)
+    pos = Box().sample(n_robots, g, rng)
+    est = DistributedEstimator(
+        g, DT, n_robots, H, FilterSettings(), radius=radius, k_nearest=k, gradient=gradient,
+        initial_rounds=initial_rounds,
+    )  # fmt: skip
+    clock = Clock()
+    e = clock("(initialize)", lambda: est.initialize(pos))
+    sweeps = []
+    for step in range(warmup + steps):
+        if warmup and step == warmup:  # time from here on
+            clock = Clock()
+        p_mean = e.p_hat.mean(axis=0).reshape(g.shape)
+        q_mean = None if e.q_hat is None else e.q_hat.mean(axis=0).reshape(2, *g.shape)
+
+        def model(p_mean=p_mean, q_mean=q_mean):
+            q = g.gradient(p_mean) if q_mean is None else q_mean
+            return fp.matrix(paper_law(p_mean, q, target_density, ALPHA, SIGMA))
+
+        a = clock("filter model A (mean estimate)", model)
+        sweeps.append(jacobi_sweeps(stencil_coefficients(g, a, DT)[0]))
+        v = clock(
+            "per-robot law",
+            lambda e=e: decentralised_velocities(
+                g, target_density, ALPHA, SIGMA, e.p_hat, pos, e.q_hat
+            ),
+        )
+        clock("robot step", lambda v=v: euler_maruyama_robots(g, pos, v, SIGMA, DT, rng))
+        w = clock("graph", lambda: est._graph(pos))
+        z = clock("consensus", lambda w=w: est.consensus.step(pos, w))
+        y, y_g = est._split(z)
+        clock("per-robot filters", lambda y=y, y_g=y_g, a=a: est.filters.step(y, a, y_g))
+        e = est._estimate(y)
+        clock("(components, logged)", lambda e=e: n_components(e.adjacency))
+        clock("(algebraic connectivity, logged)", lambda e=e: algebraic_connectivity(e.adjacency))
+    graph = f"radius {radius}" if radius is not None else f"k = {k}"
+    counts = message_counts(est.adjacency, est.consensus.rounds, est.consensus.fields * g.size)
+    extra = f", PCG iterations {est.filters.poisson.iterations}" if gradient == "filter" else ""
+    print(
+        f"  N = {n_robots}, gradient = {gradient}, {graph}: mean degree "
+        f"{counts['mean_degree']:.1f}, {counts['messages']:.1f} messages "
+        f"({counts['bytes'] / 1e3:.0f} kB) per robot per step, Jacobi sweeps "
+        f"{min(sweeps[warmup:])}..{max(sweeps[warmup:])} (a priori){extra}"
+    )
+    print(
+        f"    memory {est.memory_bytes() / n_robots / 1e3:.1f} kB per robot "
+        f"({est.memory_bytes() / 1e6:.1f} MB for the swarm)"
+    )
+    clock.report(skip=2 if warmup == 0 else 0, target=target)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--steps", type=int, default=12)
+    parser.add_argument("--threads", type=int, default=1, help="numba threads")
+    parser.add_argument("--initial-rounds", type=int, default=30)
+    parser.add_argument(
+        "--warmup", type=int, default=0, help="untimed steps first (0: skip 2 timed steps)"
+    )
+    parser.add_argument("--only", type=int, default=None, help="run only this case (index)")
+    parser.add_argument(
+        "--gradient-filter", action="store_true", help="also time gradient='filter' (slow)"
+    )
+    args = parser.parse_args()
+    numba.set_num_threads(args.threads)
+    print(
+        f"numba threads {args.threads}; BLAS pinned to 1 thread; n = 30; "
+        f"initial_rounds {args.initial_rounds}; warmup {args.warmup} steps"
+    )
+    cases: list[tuple[int, str, float | None, int | None, float | None]] = [
+        (1024, "grid", 0.05, None, TARGET_MS),
+        (1024, "grid", 0.1, None, TARGET_MS),
+        (1024, "grid", 0.2, None, TARGET_MS),
+        (1024, "grid", None, 8, TARGET_MS),
+        (4096, "grid", 0.05, None, None),
+    ]
+    if args.gradient_filter:
+        cases.append((1024, "filter", 0.05, None, None))
+    if args.only is not None:
+        cases = [cases[args.only]]
+    with threadpool_limits(1):
+        for n_robots, gradient, radius, k, target in cases:
+            run(
+                n_robots, gradient, radius, k, args.steps, args.initial_rounds, target,
+                args.warmup,
+            )  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
