@@ -377,13 +377,12 @@ def consensus_weights(adj: sp.csr_matrix, gain: float = 1.0) -> tuple[sp.csr_mat
     if not 0 < gain <= 1:
         raise ValueError(f"consensus gain must be in (0, 1], got {gain}")
     n = adj.shape[0]
-    deg = np.diff(adj.indptr) if adj.format == "csr" else None
-    canonical = deg is not None and adj.has_canonical_format and bool(np.all(adj.data == 1.0))
-    if not canonical:
-        deg = np.asarray(adj.sum(axis=1)).ravel()
+    canonical = adj.format == "csr" and adj.has_canonical_format and bool(np.all(adj.data == 1.0))
+    deg = np.diff(adj.indptr) if canonical else np.asarray(adj.sum(axis=1)).ravel()
     eps = float(gain / (1.0 + (deg.max() if deg.size else 0.0)))
     if canonical:
-        return _csr(*_weights_csr(adj.indptr, adj.indices, eps), n), eps
+        indptr, indices, data = _weights_csr(adj.indptr, adj.indices, eps)
+        return _csr(indptr, indices, data, n), eps
     w = (sp.identity(n, format="csr") - eps * laplacian(adj)).tocsr()
     w.sort_indices()
     return w, eps
