@@ -56,6 +56,29 @@ def compose() -> Callable[..., DictConfig]:
 
 
 @pytest.fixture(scope="session")
+def refusal(compose: Callable[..., DictConfig]) -> Callable[[Sequence[str]], str | None]:
+    """``refusal(overrides)``: the one-line refusal of a config (composition or build), or
+    None when it is accepted.
+    """
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from harness.build import build
+    from harness.checks import ConfigError, describe
+
+    def refuse(overrides: Sequence[str]) -> str | None:
+        try:
+            build(compose(overrides))
+        except ConfigError as err:
+            return str(err)
+        except (HydraException, OmegaConfBaseException) as err:
+            return describe(err, list(overrides))
+        return None
+
+    return refuse
+
+
+@pytest.fixture(scope="session")
 def smoke() -> tuple[str, ...]:
     """The overrides of a seconds-long run (:data:`SMOKE`)."""
     return SMOKE
