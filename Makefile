@@ -61,7 +61,7 @@ STUDIES := iss_gain conv_grid conv_sigma conv_alpha agents_n debias_n
 # the sweeps' 30-minute budget on 2 cores until the fine-grid speed targets are met
 EXTRA_STUDIES := conv_grid_agents
 
-sweeps: $(STAMP) ## Run every study preset (about 6 min on 2 cores) and write figures/sweeps/
+sweeps: $(STAMP) ## Run the study presets (about 25 min on 2 cores) and write figures/sweeps/
 	@for s in $(STUDIES); do \
 		echo "== $$s"; \
 		$(PY) -m experiments.closed_loop +experiment=$$s hydra.sweep.dir=multirun/$$s || exit 1; \
