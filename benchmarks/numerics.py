@@ -28,12 +28,12 @@ import resource
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from functools import partial
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.suite import median_ms
 from harness.agents import Swarm
 from harness.control import paper_law
 from harness.densities import DEFAULT_TARGET, Box, Target
@@ -43,18 +43,6 @@ from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE
 from harness.velocity import VelocityField
-
-
-def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
-    """Median wall time of ``fn`` in ms."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
 
 
 def line(name: str, value: float, unit: str, target: float | None, lower_is_better: bool) -> bool:
