@@ -304,18 +304,22 @@ def iss_figure(rows, out: Path) -> tuple[list[Path], dict[str, float]]:
     return save_figure(fig, out, "iss_gain"), gains
 
 
+DECOMPOSITION = {
+    "phat_tail_mean": r"$\|\hat p - p_*\|$",
+    "swarm_tail_mean": r"$\|K_h\mu_N - K_h p_*\|$ (robots)",
+    "est_swarm_tail_mean": r"$\|\hat p - K_h\mu_N\|$ (estimator)",
+    "limit_swarm_tail_mean": r"$\|K_h\mu_N - K_h p_\infty\|$ (finite N)",
+    "limit_target_tail_mean": r"$\|K_h p_\infty - K_h p_*\|$ (limit loop)",
+}
+"""The statistics the agent-level figures draw against N or n, with their labels."""
+
+
 def agents_figure(rows, out: Path) -> list[Path]:
     """Tail errors against the number of robots: means over the seeds with 95 % CIs."""
     agg = sorted(points(rows), key=lambda a: a["agents.n"])
     n = np.array([a["agents.n"] for a in agg], dtype=float)
     fig, ax = plt.subplots(figsize=(6.5, 4.8), constrained_layout=True)
-    for stat, label in (
-        ("phat_tail_mean", r"$\|\hat p - p_*\|$"),
-        ("swarm_tail_mean", r"$\|K_h\mu_N - K_h p_*\|$ (robots)"),
-        ("est_swarm_tail_mean", r"$\|\hat p - K_h\mu_N\|$ (estimator)"),
-        ("limit_swarm_tail_mean", r"$\|K_h\mu_N - K_h p_\infty\|$ (finite N)"),
-        ("limit_target_tail_mean", r"$\|K_h p_\infty - K_h p_*\|$ (limit loop)"),
-    ):
+    for stat, label in DECOMPOSITION.items():
         _errorbar(ax, n, agg, stat, label=label)
     _band(ax, n, agg, "swarm_floor", "0.4", "floor: N robots drawn from $p_*$")
     ax.set_xscale("log")
@@ -417,12 +421,7 @@ def grid_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     agg = sorted(points(rows), key=lambda a: a["grid.n"])
     n = np.array([a["grid.n"] for a in agg], dtype=float)
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11.5, 4.4), constrained_layout=True)
-    for stat, label in (
-        ("phat_tail_mean", r"$\|\hat p - p_*\|$"),
-        ("swarm_tail_mean", r"$\|K_h\mu_N - K_h p_*\|$ (robots)"),
-        ("est_swarm_tail_mean", r"$\|\hat p - K_h\mu_N\|$ (estimator)"),
-        ("limit_target_tail_mean", r"$\|K_h p_\infty - K_h p_*\|$ (limit loop)"),
-    ):
+    for stat, label in DECOMPOSITION.items():
         _errorbar(ax0, n, agg, stat, label=label)
     _band(ax0, n, agg, "swarm_floor", "0.4", "floor: N robots drawn from $p_*$")
     ax0.set_yscale("log")

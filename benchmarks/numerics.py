@@ -27,18 +27,15 @@ import argparse
 import resource
 import subprocess
 import sys
-import time
 from functools import partial
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from benchmarks.suite import median_ms
+from benchmarks.suite import closed_loop_rate, median_ms
 from harness.agents import Swarm
 from harness.control import paper_law
 from harness.densities import DEFAULT_TARGET, Box, Target
-from harness.filters.common import FilterSettings, MeasurementModel
-from harness.filters.local import LocalFilters
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE
@@ -119,42 +116,14 @@ def bench_kde_agents(quick: bool) -> bool:
     return ok
 
 
-def closed_loop_rate(n: int, steps: int) -> float:
-    """Steps per second of the paper's loop with both fast filters (N = 1024)."""
-    sigma, dt, alpha = 5e-5, 0.01, 0.003
-    g = Grid.square(n)
-    rng = np.random.default_rng(0)
-    target = Target.from_density(g, DEFAULT_TARGET)
-    swarm = Swarm(g, Box().sample(1024, g, rng), sigma)
-    kde = KDE(g, 0.04)
-    truth = FokkerPlanck(g, sigma)
-    filters = LocalFilters(g, sigma, dt, MeasurementModel(1024, 0.04, FilterSettings()))
-    p = Box().on_grid(g)
-    y, yg = kde(swarm.positions)
-    v = paper_law(*filters.initialize(y, yg), target, alpha, sigma)
-
-    def step() -> None:
-        nonlocal p, v
-        a = truth.matrix(v)
-        swarm.step(v, dt, rng)
-        p = truth.step(p, v, dt, a)
-        y, yg = kde(swarm.positions)
-        v = paper_law(*filters.step(y, yg, v, a), target, alpha, sigma)
-
-    for _ in range(5):
-        step()
-    t0 = time.perf_counter()
-    for _ in range(steps):
-        step()
-    return steps / (time.perf_counter() - t0)
-
-
 def bench_closed_loop(quick: bool) -> bool:
-    """Closed-loop rates at n = 30 .. 256."""
+    """Closed-loop rates at n = 30 .. 256: the loop the app builds from its config
+    (:func:`benchmarks.suite.closed_loop_rate`: robots with the loop's N -> infinity limit,
+    KDE, both fast filters, the paper's law)."""
     print("Closed loop, both fast filters, N = 1024, dt = 0.01 (steps per second):")
     ok = True
     for n, target, steps in ((30, 1000, 1000), (64, 200, 400), (128, 100, 200), (256, 25, 60)):
-        rate = closed_loop_rate(n, steps // 4 if quick else steps)
+        rate = closed_loop_rate(n, "local", steps // 4 if quick else steps)
         ok &= line(f"n = {n}", rate, "steps/s", target, False)
     return ok
 
