@@ -26,10 +26,10 @@ import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from harness.control import paper_law
+from harness.control import PaperControl, paper_law
 from harness.densities import DEFAULT_TARGET, Box, Target
 from harness.distributed import (
-    DistributedEstimator,
+    RobotEstimators,
     algebraic_connectivity,
     decentralised_velocities,
     euler_maruyama_robots,
@@ -95,10 +95,11 @@ def run(
     target_density = Target.from_density(g, DEFAULT_TARGET)
     fp = FokkerPlanck(g, SIGMA)
     pos = Box().sample(n_robots, g, rng)
-    est = DistributedEstimator(
+    est = RobotEstimators(
         g, DT, n_robots, H, FilterSettings(), radius=radius, k_nearest=k, gradient=gradient,
         initial_rounds=initial_rounds,
     )  # fmt: skip
+    law = PaperControl(target_density, ALPHA, SIGMA).at_cells
     clock = Clock()
     e = clock("(initialize)", lambda: est.initialize(pos))
     sweeps = []
@@ -116,9 +117,7 @@ def run(
         sweeps.append(jacobi_sweeps(stencil_coefficients(g, a, DT)[0]))
         v = clock(
             "per-robot law",
-            lambda e=e: decentralised_velocities(
-                g, target_density, ALPHA, SIGMA, e.p_hat, pos, e.q_hat
-            ),
+            lambda e=e: decentralised_velocities(g, law, e.p_hat, pos, e.q_hat),
         )
         clock("robot step", lambda v=v: euler_maruyama_robots(g, pos, v, SIGMA, DT, rng))
         w = clock("graph", lambda: est._graph(pos))

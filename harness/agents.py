@@ -156,6 +156,8 @@ class Swarm:
         which :meth:`step_reference` states in plain numpy.
         """
         g = self.grid
+        if v.robots is not None:
+            return self.step_robots(v.robots, dt, rng)
         draw_normals(rng, self._noise)
         centres = np.ascontiguousarray(v.centres, dtype=float)
         euler_maruyama_step(
@@ -171,6 +173,23 @@ class Swarm:
             g.ny,
             float(np.sqrt(2.0 * self.sigma * dt)),
         )
+        return self.positions
+
+    def step_robots(
+        self, velocities: np.ndarray, dt: float, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Euler-Maruyama with each robot's own velocity ``(2, N)`` (length / s), for
+        decentralised control: ``X_i <- R(X_i + v_i dt + sqrt(2 sigma dt) xi_i)``, the
+        draws as in :meth:`step` (``R`` the reflection at the walls).
+        """
+        g = self.grid
+        v = np.asarray(velocities, dtype=float)
+        if v.shape != self.positions.shape:
+            raise ValueError(f"velocities must have shape {self.positions.shape}, got {v.shape}")
+        draw_normals(rng, self._noise)
+        self.positions += v * dt + self._noise * np.sqrt(2.0 * self.sigma * dt)
+        reflect(self.positions[0], g.x0, g.x1)
+        reflect(self.positions[1], g.y0, g.y1)
         return self.positions
 
     def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:

@@ -410,7 +410,8 @@ def resolution(plant: Any, estimator: Any) -> float | None:
 def check_built(
     cfg: DictConfig, grid: Grid, target: Target, control: Control, plant: Any, estimator: Any
 ) -> None:
-    """Checks across components: the sampled-data step bound
+    """Checks across components: a decentralised estimator needs robots and a law with
+    ``at_cells``; the sampled-data step bound
     (:func:`harness.control.sampled_data_dt_bound`) of the control law near the target,
     for the resolution of the estimates the plant and estimator give (:func:`resolution`).
 
@@ -421,6 +422,19 @@ def check_built(
     A law without :meth:`~harness.components.Control.feedback_diffusivity` (or returning
     None) is not refused; a :class:`ConfigWarning` says the bound was not checked.
     """
+    if getattr(estimator, "decentralised", False):
+        if not getattr(plant, "has_robots", False):
+            raise ConfigError(
+                "plant", type(plant).__name__,
+                "a plant with robots (plant=agents): every robot of estimator=distributed "
+                "estimates and moves on its own",
+            )  # fmt: skip
+        if not callable(getattr(control, "at_cells", None)):
+            raise ConfigError(
+                "control", type(control).__name__,
+                "a law each robot can evaluate at its own cells (a method at_cells, see "
+                "harness.control.PaperControl.at_cells) for estimator=distributed",
+            )  # fmt: skip
     rate = getattr(control, "feedback_diffusivity", None)
     diffusivity = rate(target.p) if rate is not None else None
     if diffusivity is None:

@@ -254,6 +254,23 @@ class PaperControl:
         """The velocity by eq. ``modified density feedback law using estimates``."""
         return paper_law(p_hat, q_hat, self.target, self.alpha, self.sigma, self.feedback_target)
 
+    def at_cells(
+        self, p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The cell-centre values of :meth:`__call__` at flat cell indices ``cells``,
+        from estimates ``p``, ``qx``, ``qy`` given at those cells (any common shape):
+        the law each robot evaluates at its own cells in a decentralised loop
+        (:func:`harness.distributed.decentralised_velocities`). Returns ``(vx, vy)``
+        (length / s).
+        """
+        f, t = self.feedback_target, self.target
+        fp, fgx, fgy = f.p.ravel()[cells], f.grad[0].ravel()[cells], f.grad[1].ravel()[cells]
+        tp, tgx, tgy = t.p.ravel()[cells], t.grad[0].ravel()[cells], t.grad[1].ravel()[cells]
+        # v = -alpha (p~_* q_hat - p_hat grad p~_*) / p~_*^2 + sigma grad p_* / p_*
+        vx = -self.alpha * (fp * qx - p * fgx) / fp**2 + self.sigma * tgx / tp
+        vy = -self.alpha * (fp * qy - p * fgy) / fp**2 + self.sigma * tgy / tp
+        return vx, vy
+
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``alpha max(p0 / p~_*)``: the feedback term is the nonlinear diffusion
         ``div(alpha p grad(p / p~_*))`` of local diffusivity ``alpha p / p~_*``
@@ -313,6 +330,21 @@ class HeatControl:
             noise_compensation=self.noise_compensation,
             feedback_target=self.feedback_target,
         )
+
+    def at_cells(
+        self, p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The cell-centre values of :meth:`__call__` at flat cell indices ``cells``,
+        from estimates given at those cells (see :meth:`PaperControl.at_cells`).
+        """
+        f = self.feedback_target
+        denom = np.maximum(p, self.density_floor)
+        # v = -alpha (q_hat - grad p~_*) / max(p_hat, c) [+ sigma q_hat / max(p_hat, c)]
+        vx = -self.alpha * (qx - f.grad[0].ravel()[cells]) / denom
+        vy = -self.alpha * (qy - f.grad[1].ravel()[cells]) / denom
+        if self.noise_compensation:
+            vx, vy = vx + self.sigma * qx / denom, vy + self.sigma * qy / denom
+        return vx, vy
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``alpha max(p0 / max(p0, c))``: with exact estimates the feedback flux is

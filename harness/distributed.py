@@ -112,7 +112,9 @@ mean over robots (with a broadcast medium one transmission per round would do).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numba
 import numpy as np
@@ -121,12 +123,12 @@ import scipy.sparse.csgraph as csgraph
 import scipy.sparse.linalg as spla
 from scipy.spatial import cKDTree
 
-from harness.densities import Target
 from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.local import squared_transition
 from harness.fokker_planck import _MAX_SERIES_TERMS, _series_terms
 from harness.grid import Grid
 from harness.kde import _IMAGE_CUTOFF
+from harness.velocity import VelocityField
 
 # --------------------------------------------------------------------------------------
 # communication graph
@@ -1318,24 +1320,19 @@ def density_filter_reference(
 # decentralised control
 
 
-def _law_at_cells(
-    p: np.ndarray, qx: np.ndarray, qy: np.ndarray, target: Target, cells: np.ndarray,
-    alpha: float, sigma: float,
-) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The paper's law's cell-centre values at flat ``cells`` (same shape as ``p``)."""
-    ps = target.p.ravel()[cells]
-    gx = target.grad[0].ravel()[cells]
-    gy = target.grad[1].ravel()[cells]
-    vx = -alpha * (ps * qx - p * gx) / ps**2 + sigma * gx / ps
-    vy = -alpha * (ps * qy - p * gy) / ps**2 + sigma * gy / ps
-    return vx, vy
+class CellLaw(Protocol):
+    """A control law's cell-centre values at given cells (``Control.at_cells``)."""
+
+    def __call__(
+        self, p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(vx, vy)`` (length / s) at flat ``cells`` from the estimates there."""
+        ...
 
 
 def decentralised_velocities(
     grid: Grid,
-    target: Target,
-    alpha: float,
-    sigma: float,
+    law: CellLaw,
     p_hat: np.ndarray,
     positions: np.ndarray,
     q_hat: np.ndarray | None = None,
@@ -1343,15 +1340,19 @@ def decentralised_velocities(
     """Each robot's velocity from its own estimates at its own position, ``(2, N)``
     (length / time).
 
-    Robot ``i`` evaluates the paper's law (eq. ``modified density feedback law using
-    estimates``, :func:`harness.control.paper_law`, cell-centre values)
+    Robot ``i`` evaluates the law's cell-centre values (``law``, a control's
+    ``at_cells``; for the paper's law eq. ``modified density feedback law using
+    estimates``,
 
-        v_i = -alpha (p_* q_hat_i - p_hat_i grad p_*) / p_*^2 + sigma grad p_* / p_*
+        v_i = -alpha (p_* q_hat_i - p_hat_i grad p_*) / p_*^2 + sigma grad p_* / p_*)
 
-    at the four cell centres around ``X_i`` and interpolates bilinearly as
-    :func:`harness.agents.interpolate` does (nearest values beyond the outer centres).
+    at the four cell centres around ``X_i`` from ``(p_hat_i, q_hat_i)`` there, and
+    interpolates bilinearly as :func:`harness.agents.interpolate` does (nearest values
+    beyond the outer centres): what a robot of the centralised loop does with the
+    broadcast field, with its own estimate in place of the broadcast one.
 
     Args:
+        law: ``(p, qx, qy, cells) -> (vx, vy)`` at flat cell indices.
         p_hat: Robots' density estimates ``(N, M)`` (1 / length^2).
         positions: ``(2, N)`` (length).
         q_hat: Gradient estimates ``(N, 2M)`` (1 / length^3); None for the grid
@@ -1372,12 +1373,13 @@ def decentralised_velocities(
     if q_hat is None:
         ip, im = np.minimum(ci + 1, g.nx - 1), np.maximum(ci - 1, 0)
         jp, jm = np.minimum(cj + 1, g.ny - 1), np.maximum(cj - 1, 0)
+        # the grid gradient G (harness.grid.Grid.gradient), reflecting ghost cells
         qx = (p_hat[rows, cj * g.nx + ip] - p_hat[rows, cj * g.nx + im]) / (2 * g.dx)
         qy = (p_hat[rows, jp * g.nx + ci] - p_hat[rows, jm * g.nx + ci]) / (2 * g.dy)
     else:
         qx = q_hat[rows, cells]
         qy = q_hat[rows, g.size + cells]
-    vx, vy = _law_at_cells(p, qx, qy, target, cells, alpha, sigma)
+    vx, vy = law(p, qx, qy, cells)
     out = np.empty((2, n))
     for c, v in enumerate((vx, vy)):
         out[c] = (v[:, 0] + fx * (v[:, 1] - v[:, 0])) * (1 - fy) + (
@@ -1388,24 +1390,22 @@ def decentralised_velocities(
 
 def decentralised_velocities_reference(
     grid: Grid,
-    target: Target,
-    alpha: float,
-    sigma: float,
+    control: Callable[[np.ndarray, np.ndarray], VelocityField],
     p_hat: np.ndarray,
     positions: np.ndarray,
     q_hat: np.ndarray | None = None,
 ) -> np.ndarray:
     """Plain statement of :func:`decentralised_velocities`: per robot the full field of
-    :func:`harness.control.paper_law` and :func:`harness.agents.interpolate` at ``X_i``.
+    ``control`` (a control law on fields) and :func:`harness.agents.interpolate` at
+    ``X_i``.
     """
     from harness.agents import interpolate
-    from harness.control import paper_law
 
     out = np.empty((2, positions.shape[1]))
     for i in range(positions.shape[1]):
         p = p_hat[i].reshape(grid.shape)
         q = grid.gradient(p) if q_hat is None else q_hat[i].reshape(2, *grid.shape)
-        v = paper_law(p, q, target, alpha, sigma)
+        v = control(p, q)
         out[:, i] = interpolate(grid, v.centres, positions[:, i : i + 1])[:, 0]
     return out
 
@@ -1487,7 +1487,7 @@ class DistributedEstimate:
     eps: float
 
 
-class DistributedEstimator:
+class RobotEstimators:
     """Graph + dynamic average consensus + per-robot fast filters.
 
     Args:

@@ -10,7 +10,11 @@ Step ``n -> n + 1`` (``v_n`` was computed at ``t_n`` and is held over the step):
    ``A(v_n)`` assembled once and shared with the estimator;
 2. the plant is measured at ``t_{n+1}`` (only when the estimator uses a measurement);
 3. the estimator predicts under ``v_n`` and updates with the measurement;
-4. the control gives ``v_{n+1}`` from ``(p_hat, q_hat)``.
+4. the control gives ``v_{n+1}`` from ``(p_hat, q_hat)``; when the estimate carries
+   each robot's own estimate (``estimator=distributed``), each robot's velocity is the
+   law of its own estimate at its own position instead
+   (:func:`harness.distributed.decentralised_velocities`), and the field, the law of the
+   robots' mean estimate, is the filters' transport model.
 
 Errors are measured against the plant's mean-field density ``p`` (notes section 5):
 ``Phi = p - p_*``, ``eps = p_hat - p`` and ``eps_g = q_hat - grad p``, the states of the
@@ -20,9 +24,12 @@ system``); see :mod:`harness.metrics`.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from harness.components import Control, Estimator, Plant
+from harness.distributed import decentralised_velocities
 from harness.fokker_planck import FokkerPlanck, NumericalError
 from harness.records import Estimate, Measurement, StepInput, StepRecord
 from harness.velocity import VelocityField
@@ -72,6 +79,15 @@ class ClosedLoop:
         if not (np.isfinite(est.p_hat).all() and np.isfinite(est.q_hat).all()):
             raise NumericalError("the estimate became non-finite")
         v = self.control(est.p_hat, est.q_hat)
+        if est.robots is not None:
+            # decentralised: robot i moves on the law of its own estimate, at its position
+            assert self.plant.positions is not None
+            law = self.control.at_cells  # type: ignore[attr-defined]
+            robots = est.robots
+            own = decentralised_velocities(
+                self.grid, law, robots.p_hat, self.plant.positions, robots.q_hat
+            )
+            v = dataclasses.replace(v, robots=own)
         if not v.is_finite():
             raise NumericalError("the velocity field became non-finite")
         return v

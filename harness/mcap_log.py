@@ -8,6 +8,9 @@ Topics (a topic that does not apply to the plant or estimator is absent):
 
 * ``/fields/p_target`` (once, at t = 0), ``/fields/p_true``, ``/fields/p_kde``,
   ``/fields/p_hat``: ``foxglove.Grid`` with one float32 field ``p`` (1 / length^2);
+* with ``estimator=distributed``: ``/fields/p_hat`` is the robots' mean estimate,
+  ``/fields/p_hat_central`` the centralised filter's (the reference run alongside) and
+  ``/fields/p_hat_robot`` the estimate of robot ``estimator.robot`` (field ``p``);
 * ``/fields/grad_kde``, ``/fields/grad_hat``: fields ``gx``, ``gy`` (1 / length^3);
 * ``/fields/velocity``: fields ``vx``, ``vy`` (length / s), the cell-centre values;
 * ``/swarm/positions``: ``foxglove.PointCloud`` with float32 ``x, y, z`` (z = 0);
@@ -69,6 +72,8 @@ FIELD_TOPICS = {
     "/fields/p_true": ("p",),
     "/fields/p_kde": ("p",),
     "/fields/p_hat": ("p",),
+    "/fields/p_hat_central": ("p",),
+    "/fields/p_hat_robot": ("p",),
     "/fields/grad_kde": ("gx", "gy"),
     "/fields/grad_hat": ("gx", "gy"),
     "/fields/velocity": ("vx", "vy"),
@@ -236,6 +241,11 @@ class McapLogger:
             self.write_grid("/fields/p_hat", t, rec.estimate.p_hat)
             self.write_grid("/fields/grad_hat", t, rec.estimate.q_hat)
             self.write_grid("/fields/velocity", t, rec.velocity.centres)
+            robots = rec.estimate.robots
+            if robots is not None:
+                shape = rec.p_true.shape
+                self.write_grid("/fields/p_hat_central", t, robots.p_central)
+                self.write_grid("/fields/p_hat_robot", t, robots.p_hat[robots.robot].reshape(shape))
         if rec.positions is not None and (rec.step % self.positions_every == 0 or last):
             msg = points_message(rec.t, rec.positions)
             self._write(

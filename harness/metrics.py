@@ -23,6 +23,9 @@ swarm more evenly than independent samples, so a controlled swarm may sit below 
 
 ``phat_smoothed_target_l2`` = ``||p_hat - K_h p_*||`` (every step) is the Fig. 2
 quantity for a debiased loop, whose estimates settle on ``K_h p_*``, not ``p_*``.
+
+The decentralised loop (``estimator=distributed``) adds its graph and consensus
+figures (:func:`network_metrics`); there ``p_hat`` is the robots' mean estimate.
 """
 
 from __future__ import annotations
@@ -56,11 +59,21 @@ METRIC_KEYS = (
     "limit_swarm_l2",
     "limit_target_l2",
     "phat_smoothed_target_l2",
+    "consensus_l2",
+    "central_gap_l2",
+    "messages",
+    "mean_degree",
+    "components",
+    "algebraic_connectivity",
 )
 """The keys of :func:`metrics` and :class:`SwarmTruth`, in log order."""
 
-SWARM_KEYS = METRIC_KEYS[-6:-1]
+SWARM_KEYS = ("swarm_l2", "swarm_w2", "est_swarm_l2", "limit_swarm_l2", "limit_target_l2")
 """The swarm metrics (null between their steps and without robots)."""
+
+NETWORK_KEYS = METRIC_KEYS[-6:]
+"""The decentralised loop's metrics (null unless ``estimator=distributed``); see
+:class:`harness.estimators.DistributedEstimator` and :mod:`harness.distributed`."""
 
 ALWAYS_NUMBERS = ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
 """Keys that are never null."""
@@ -92,7 +105,25 @@ def metrics(grid: Grid, target: Target, rec: StepRecord) -> dict[str, float | No
         "trace_Q": est.trace_Q,
         "trace_P_grad": est.trace_P_grad,
         "trace_Q_grad": est.trace_Q_grad,
-    }
+    } | network_metrics(rec)
+
+
+def network_metrics(rec: StepRecord) -> dict[str, float | None]:
+    """The decentralised loop's metrics, None unless the robots estimate on their own:
+
+    ``consensus_l2`` = mean over robots of ``||p_hat_i - mean_j p_hat_j||`` (1 / length);
+    ``central_gap_l2`` = mean over robots of ``||p_hat_i - p_hat_central||`` (1 / length),
+    against the centralised filters run alongside; ``messages`` = consensus messages per
+    robot per step (one message: one robot's tracked fields, ``F M`` float64, to one
+    neighbour in one round); ``mean_degree`` (neighbours per robot); ``components``
+    (connected components of the communication graph); ``algebraic_connectivity`` =
+    ``lambda_2`` of the graph Laplacian (1; 0 when disconnected), evaluated every
+    ``estimator.connectivity_every`` steps and held in between.
+    """
+    robots = rec.estimate.robots
+    if robots is None:
+        return dict.fromkeys(NETWORK_KEYS)
+    return {key: float(robots.network[key]) for key in NETWORK_KEYS}
 
 
 class SwarmTruth:

@@ -78,6 +78,8 @@ class Agents:
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
 
+    has_robots = True
+
     BYTES_PER_ROBOT = 200
     """Per robot: positions, noise and interpolation temporaries (float64, 2 x 8 bytes
     each, about eight of them), the KDE's binning indices and weights, and the logged
@@ -126,6 +128,7 @@ class MeanField:
     """
 
     positions = None
+    has_robots = False
     resolution = None  # white noise per cell: grid resolution
 
     def __init__(

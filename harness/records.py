@@ -54,6 +54,32 @@ class StepInput:
 
 
 @dataclass(frozen=True)
+class RobotEstimates:
+    """The robots' own estimates in a decentralised loop (``estimator=distributed``).
+
+    Attributes:
+        p_hat: Robot ``i``'s density estimate in row ``i``, ``(N, M)`` (1 / length^2),
+            cells in C order of the grid.
+        q_hat: Gradient estimates ``(N, 2M)`` (``x`` block then ``y`` block, 1 /
+            length^3), or None when each robot takes the grid gradient of its own
+            ``p_hat_i`` (the law evaluates that at the robot's cells).
+        p_central: The centralised filter's density estimate ``(ny, nx)`` on the same
+            measurements, run alongside as the reference; never used for control.
+        robot: The index of the robot whose estimate is logged as a field.
+        network: The step's graph and communication figures (see
+            :func:`harness.metrics.network_metrics`): ``consensus_l2``,
+            ``central_gap_l2``, ``messages``, ``mean_degree``, ``components``,
+            ``algebraic_connectivity``.
+    """
+
+    p_hat: np.ndarray
+    q_hat: np.ndarray | None
+    p_central: np.ndarray
+    robot: int
+    network: dict[str, float]
+
+
+@dataclass(frozen=True)
 class Estimate:
     """Estimates and diagnostics.
 
@@ -64,6 +90,9 @@ class Estimate:
         trace_Q: L2 trace of its process noise per step (1 / length^2), or None.
         trace_P_grad: Same for the gradient filter (1 / length^4), or None.
         trace_Q_grad: Same for the gradient filter (1 / length^4), or None.
+        robots: Each robot's own estimates when every robot moves on its own
+            (``estimator=distributed``; ``p_hat`` and ``q_hat`` are then the robots'
+            means), else None.
     """
 
     p_hat: np.ndarray
@@ -72,6 +101,7 @@ class Estimate:
     trace_Q: float | None = None
     trace_P_grad: float | None = None
     trace_Q_grad: float | None = None
+    robots: RobotEstimates | None = None
 
 
 @dataclass(frozen=True)

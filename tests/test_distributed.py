@@ -5,11 +5,11 @@ import scipy.sparse.linalg as spla
 from scipy.spatial.distance import cdist
 
 from harness.agents import interpolate
-from harness.control import paper_law
+from harness.control import HeatControl, PaperControl, paper_law
 from harness.densities import DEFAULT_TARGET, Box, Target
 from harness.distributed import (
-    DistributedEstimator,
     DynamicAverageConsensus,
+    RobotEstimators,
     RobotFilters,
     algebraic_connectivity,
     central_gap_l2,
@@ -223,7 +223,7 @@ def test_complete_graph_equals_the_centralised_filter(gradient):
     # the same local filter without it (every cosine mode kept)
     settings = FilterSettings(band_limit=np.inf)
     kde = KDE(g, H, method="exact")
-    est = DistributedEstimator(g, dt, n, H, settings, radius=2.0, gradient=gradient)
+    est = RobotEstimators(g, dt, n, H, settings, radius=2.0, gradient=gradient)
     est.filters.poisson.tol = 1e-13
     central = LocalFilters(g, SIGMA, dt, MeasurementModel(n, H, settings))
     central.poisson.tol = 1e-13
@@ -245,7 +245,8 @@ def test_complete_graph_equals_the_centralised_filter(gradient):
         # time-varying gain: a time-varying velocity field
         a_t = alpha * (1.0 + 10.0 * np.sin(0.3 * step) ** 2)
         v_field = paper_law(p_c, q_c, target, a_t, SIGMA)
-        v_robots = decentralised_velocities(g, target, a_t, SIGMA, e.p_hat, pos, q_robot)
+        law = PaperControl(target, a_t, SIGMA).at_cells
+        v_robots = decentralised_velocities(g, law, e.p_hat, pos, q_robot)
         expected = interpolate(g, v_field.centres, pos)
         np.testing.assert_allclose(v_robots, expected, atol=1e-9 * abs(expected).max())
         pos = euler_maruyama_robots(g, pos, v_robots, SIGMA, dt, rng)
@@ -261,10 +262,17 @@ def test_decentralised_velocities_match_the_per_robot_field(rng, grid30, target3
     pos[:, :4] = [[0.0, 1.0, 0.01, 0.995], [0.0, 1.0, 0.99, 0.003]]  # near the walls
     p_hat = 1.0 + 0.5 * rng.random((n, grid30.size))
     q_hat = rng.normal(size=(n, 2 * grid30.size))
-    for q in (None, q_hat):
-        fast = decentralised_velocities(grid30, target30, 0.003, SIGMA, p_hat, pos, q)
-        ref = decentralised_velocities_reference(grid30, target30, 0.003, SIGMA, p_hat, pos, q)
-        np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-15)
+    controls = [
+        PaperControl(target30, 0.003, SIGMA),
+        PaperControl(target30, 0.003, SIGMA, debias=True, bandwidth=H),
+        HeatControl(target30, 0.01, SIGMA, density_floor=1.2),
+        HeatControl(target30, 0.01, SIGMA, noise_compensation=False),
+    ]
+    for control in controls:
+        for q in (None, q_hat):
+            fast = decentralised_velocities(grid30, control.at_cells, p_hat, pos, q)
+            ref = decentralised_velocities_reference(grid30, control, p_hat, pos, q)
+            np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-15)
 
 
 def test_metrics_on_known_deviations(rng):
@@ -378,7 +386,7 @@ def test_initial_rounds_mix_the_first_kernels_by_the_matrix_power(initial_rounds
     phi = robot_kernels(g, pos, H)
     dense = np.eye(n) - eps * (2 * np.eye(n) - adj.toarray())
     expected = np.linalg.matrix_power(dense, initial_rounds) @ phi
-    est = DistributedEstimator(
+    est = RobotEstimators(
         g, 0.01, n, H, FilterSettings(), k_nearest=2, gain=0.8, initial_rounds=initial_rounds
     )
     z = est.initialize(pos).observation
@@ -418,7 +426,7 @@ def test_results_do_not_depend_on_the_thread_count(rng):
     try:
         for threads in (1, numba.config.NUMBA_NUM_THREADS):
             numba.set_num_threads(threads)
-            est = DistributedEstimator(g, 0.01, n, H, FilterSettings(), radius=0.2, rounds=2)
+            est = RobotEstimators(g, 0.01, n, H, FilterSettings(), radius=0.2, rounds=2)
             est.initialize(pos)
             outs.append(est.step(moved, a).p_hat.copy())
     finally:

@@ -1,0 +1,137 @@
+"""The decentralised loop through the harness (``estimator=distributed``): the robots'
+estimates against the centralised reference run alongside, the per-robot velocities,
+the log's fields and metrics, and the refusals.
+
+The building blocks (graph, consensus, per-robot filters) are tested against
+brute-force and reference implementations in ``tests/test_distributed.py``.
+"""
+
+import numpy as np
+import pytest
+
+from analysis.load import load_run
+from harness.agents import interpolate
+from harness.build import build
+from harness.loop import ClosedLoop
+from harness.metrics import METRIC_KEYS, NETWORK_KEYS
+from harness.run import run
+
+SMALL = ("grid.n=16", "agents.n=150", "sim.dt=0.01", "kde.method=exact", "log.progress=off")
+
+
+def _loop(compose, overrides):
+    parts = build(compose(["estimator=distributed", *SMALL, *overrides]))
+    rng = np.random.default_rng(3)
+    return ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, 0.01, rng), parts
+
+
+def test_complete_graph_robots_equal_the_centralised_reference_in_the_loop(compose):
+    """Radius 2 covers the unit square: the graph is complete, one round is exact
+    consensus, and every robot's estimate equals the centralised filter's on the plant's
+    KDE at every step; each robot then moves exactly as it would on the broadcast field."""
+    loop, parts = _loop(compose, ["estimator.radius=2.0", "estimator.initial_rounds=1"])
+    rec = loop.start()
+    for step in range(40):
+        robots = rec.estimate.robots
+        assert robots is not None
+        scale = np.abs(robots.p_central).max()
+        gap = np.abs(robots.p_hat - robots.p_central.ravel()).max()
+        assert gap < 1e-10 * scale, (step, gap)
+        assert robots.network["central_gap_l2"] < 1e-10
+        assert robots.network["components"] == 1.0
+        np.testing.assert_allclose(rec.estimate.p_hat, robots.p_central, atol=1e-10 * scale)
+        v = loop.v
+        assert v is not None and v.robots is not None
+        broadcast = interpolate(parts.grid, v.centres, loop.plant.positions)
+        np.testing.assert_allclose(v.robots, broadcast, atol=1e-10 * np.abs(broadcast).max())
+        rec = loop.step()
+
+
+def test_disconnected_robots_drift_apart_and_away_from_the_reference(compose):
+    """Radius 0: no robot hears any other; each filters its own kernel, so the robots
+    disagree by about a kernel's norm and the gap to the reference is of that size."""
+    loop, _ = _loop(compose, ["estimator.radius=0.0"])
+    rec = loop.start()
+    for _ in range(5):
+        rec = loop.step()
+    net = rec.estimate.robots.network
+    assert net["components"] == 150.0 and net["mean_degree"] == 0.0
+    assert net["messages"] == 0.0 and net["algebraic_connectivity"] == 0.0
+    # one robot's own kernel has L2 norm 1 / (2 sqrt(pi) h) ~ 7 (away from the walls)
+    assert net["consensus_l2"] > 2.0 and net["central_gap_l2"] > 2.0
+
+
+def test_log_holds_the_three_estimates_and_the_network_metrics(tmp_path, compose, smoke):
+    cfg = compose(["estimator=distributed", *smoke, "estimator.robot=7"])
+    result = run(cfg, tmp_path)
+    assert result.state == "completed", result.reason
+    log = load_run(tmp_path)
+    for topic in ("/fields/p_hat", "/fields/p_hat_central", "/fields/p_hat_robot"):
+        assert topic in log.fields
+    for key in NETWORK_KEYS:
+        values = np.asarray(log.metrics[key], dtype=float)
+        assert np.isfinite(values).all(), key
+    assert set(log.metrics) == set(METRIC_KEYS)
+    # the logged robot's field is robot 7's estimate: it differs from the mean and the
+    # reference (graph of radius 0.1 on 200 robots, consensus not exact)
+    robot = log.fields["/fields/p_hat_robot"].values[-1]
+    mean = log.fields["/fields/p_hat"].values[-1]
+    assert np.abs(robot - mean).max() > 1e-3
+
+
+def test_centralised_runs_log_the_network_metrics_as_null(tmp_path, compose, smoke):
+    result = run(compose(list(smoke)), tmp_path)
+    assert result.state == "completed"
+    log = load_run(tmp_path)
+    for key in NETWORK_KEYS:
+        assert np.isnan(np.asarray(log.metrics[key], dtype=float)).all(), key
+    assert "/fields/p_hat_central" not in log.fields
+
+
+@pytest.mark.parametrize(
+    ("overrides", "key"),
+    [
+        (["plant=meanfield"], "plant"),
+        (["estimator.radius=null"], "estimator.radius"),
+        (["estimator.k_nearest=5"], "estimator.radius"),
+        (["estimator.radius=-0.1"], "estimator.radius"),
+        (["estimator.robot=150"], "estimator.robot"),
+        (["estimator.gradient=exact"], "estimator.gradient"),
+        (["estimator.gain=1.5"], "estimator.gain"),
+        (["estimator.rounds=0"], "estimator.rounds"),
+        (["kde.mirror=false"], "kde.mirror"),
+    ],
+)
+def test_bad_decentralised_configs_are_refused_naming_the_key(refusal, overrides, key):
+    message = refusal(["estimator=distributed", *SMALL, *overrides])
+    assert message is not None and message.startswith(f"invalid config: {key}="), message
+
+
+def test_k_nearest_graph_runs(compose):
+    loop, _ = _loop(compose, ["estimator.radius=null", "estimator.k_nearest=6"])
+    loop.start()
+    rec = loop.step()
+    assert rec.estimate.robots.network["mean_degree"] >= 6.0
+
+
+def test_a_law_without_cell_values_is_refused(refusal, tmp_path):
+    """A control without ``at_cells`` cannot be evaluated by each robot."""
+    message = refusal(
+        ["estimator=distributed", *SMALL, "control._target_=tests.test_decentralised.FieldOnly"]
+    )
+    assert message is not None and message.startswith("invalid config: control="), message
+
+
+class FieldOnly:
+    """A law on fields only (no ``at_cells``)."""
+
+    def __init__(self, target, alpha, sigma, **debias):
+        from harness.control import PaperControl
+
+        self.inner = PaperControl(target, alpha, sigma, **debias)
+
+    def __call__(self, p_hat, q_hat):
+        return self.inner(p_hat, q_hat)
+
+    def feedback_diffusivity(self, p0):
+        return self.inner.feedback_diffusivity(p0)
