@@ -16,6 +16,9 @@ varies:
   ``||p_hat - p_*||`` beside them;
 * ``agents.n`` (``agents_n.png/.pdf``): tail means of ``||p_hat - p_*||``, ``swarm_l2``
   (with its floor) and the decomposition terms against N;
+* ``estimator.radius`` (``distributed_r.png/.pdf``): the decentralised loop's
+  ``central_gap_l2`` and ``consensus_l2``, ``swarm_l2`` with its floor and the mean
+  estimate's ``||p_hat - p_*||``, and the messages and components, against the radius;
 * ``grid.n`` with robots (``conv_grid_agents.png/.pdf``): tail ``||p_hat - p_*||``,
   ``swarm_l2`` and the decomposition terms against n, and the wall time per step;
 * otherwise (``convergence.png/.pdf``): ``||Phi||`` curves overlaid and the fitted
@@ -33,6 +36,11 @@ record. Swarm statistics (1/length, ``swarm_w2`` in length; empty without robots
 ``swarm_floor_mean``/``_lo``/``_hi`` and ``swarm_w2_floor_mean``/``_lo``/``_hi`` from the
 ``theory`` record, and ``swarm_ratio`` = ``swarm_tail_mean / swarm_floor_mean``;
 ``ms_per_step``, the run's wall time per step (ms, from ``wall_s`` and the number of steps).
+Decentralised statistics (empty for other runs): ``central_gap_tail_mean``,
+``consensus_tail_mean`` (1/length), ``messages_tail_mean`` (messages per robot per step),
+``degree_tail_mean``, ``components_tail_mean``, ``connectivity_tail_mean`` (tail means
+of ``central_gap_l2``, ``consensus_l2``, ``messages``, ``mean_degree``, ``components``,
+``algebraic_connectivity``).
 
 Seeds. Rows that differ only in ``seed`` are one point: ``sweep_aggregated.csv`` has one
 row per point with, for every statistic ``s``, ``s_mean``, ``s_ci_low``, ``s_ci_high``
@@ -85,6 +93,12 @@ STATS = (
     "swarm_w2_floor_hi",
     "swarm_ratio",
     "ms_per_step",
+    "central_gap_tail_mean",
+    "consensus_tail_mean",
+    "messages_tail_mean",
+    "degree_tail_mean",
+    "components_tail_mean",
+    "connectivity_tail_mean",
 )
 
 
@@ -165,7 +179,20 @@ def swarm_stats(run, last: np.ndarray) -> dict[str, float]:
         for part in ("mean", "lo", "hi"):
             out[f"{name}_{part}"] = _float(theory.get(f"{key}_{part}"))
     out["swarm_ratio"] = out["swarm_tail_mean"] / out["swarm_floor_mean"]
+    for name, key in NETWORK_STATS.items():
+        out[name] = tail_mean(key)
     return out
+
+
+NETWORK_STATS = {
+    "central_gap_tail_mean": "central_gap_l2",
+    "consensus_tail_mean": "consensus_l2",
+    "messages_tail_mean": "messages",
+    "degree_tail_mean": "mean_degree",
+    "components_tail_mean": "components",
+    "connectivity_tail_mean": "algebraic_connectivity",
+}
+"""Tail means of the decentralised loop's metrics (NaN for other runs)."""
 
 
 def mixed(rows: list[dict[str, Any]], primary: list[str]) -> list[str]:
@@ -439,6 +466,44 @@ def grid_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     return save_figure(fig, out, "conv_grid_agents")
 
 
+def network_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
+    """Decentralised loop against the communication radius: the robots' gap to the
+    centralised filter and their disagreement; where the robots are (with the finite-N
+    floor) and the mean estimate's error; the communication each robot pays. Means over
+    the seeds with 95 % CIs; the radius axis is linear below 0.01 (``r = 0``: no
+    neighbours) and logarithmic above.
+    """
+    agg = sorted(points(rows), key=lambda a: a["estimator.radius"])
+    r = np.array([a["estimator.radius"] for a in agg], dtype=float)
+    fig, axes = plt.subplots(1, 3, figsize=(16, 4.4), constrained_layout=True)
+    _errorbar(axes[0], r, agg, "central_gap_tail_mean", color="C3",
+              label=r"$\mathrm{mean}_i\,\|\hat p_i - \hat p_{\mathrm{central}}\|$")  # fmt: skip
+    _errorbar(axes[0], r, agg, "consensus_tail_mean", color="C0",
+              label=r"$\mathrm{mean}_i\,\|\hat p_i - \bar{\hat p}\|$ (disagreement)")  # fmt: skip
+    axes[0].set_title("robots' estimates against the centralised filter")
+    axes[0].set_ylabel("tail mean (1/length)")
+    _errorbar(axes[1], r, agg, "swarm_tail_mean", color="k",
+              label=r"$\|K_h\mu_N - K_h p_*\|$ (robots)")  # fmt: skip
+    _errorbar(axes[1], r, agg, "phat_tail_mean", color="C2",
+              label=r"$\|\bar{\hat p} - p_*\|$ (mean estimate)")  # fmt: skip
+    _band(axes[1], r, agg, "swarm_floor", "0.4", "floor: N robots drawn from $p_*$")
+    axes[1].set_title("where the robots are (complete graph = centralised loop)")
+    axes[1].set_ylabel("tail mean (1/length)")
+    _errorbar(axes[2], r, agg, "messages_tail_mean", color="C1",
+              label="messages per robot per step")  # fmt: skip
+    _errorbar(axes[2], r, agg, "components_tail_mean", color="C4",
+              label="connected components")  # fmt: skip
+    axes[2].set_title("communication")
+    axes[2].set_ylabel("tail mean (1)")
+    for ax in axes:
+        ax.set_xscale("symlog", linthresh=0.01)
+        ax.set_yscale("log")
+        ax.set_xlabel("communication radius r (length)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    return save_figure(fig, out, "distributed_r")
+
+
 def _label(row: dict[str, Any], key: str) -> str:
     v = value(row, key)
     return row["dir"] if v is None else str(v)
@@ -528,6 +593,18 @@ def main(argv: list[str] | None = None) -> int:
             )
     elif usable and "agents.n" in keys:
         written += agents_figure(usable, out)
+    elif usable and "estimator.radius" in keys:
+        written += network_figure(usable, out)
+        for a in sorted(points(usable), key=lambda a: a["estimator.radius"]):
+            print(
+                f"r = {a['estimator.radius']}: central_gap_l2 "
+                f"{a['central_gap_tail_mean_mean']:.3g} "
+                f"(95 % CI {a['central_gap_tail_mean_ci_low']:.3g} to "
+                f"{a['central_gap_tail_mean_ci_high']:.3g}) 1/length, swarm_l2 "
+                f"{a['swarm_tail_mean_mean']:.3g} 1/length (floor "
+                f"{a['swarm_floor_mean_mean']:.3g}), {a['messages_tail_mean_mean']:.3g} "
+                f"messages per robot per step ({a['jobs']} seeds)"
+            )
     elif usable and "grid.n" in keys and any(np.isfinite(r["swarm_tail_mean"]) for r in usable):
         written += grid_figure(usable, out)
         for a in sorted(points(usable), key=lambda a: a["grid.n"]):

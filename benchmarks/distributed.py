@@ -11,6 +11,10 @@ Medians over steps of wall time and of process CPU time (the machine may be shar
 time is the work done; with numba's threads it sums the threads), BLAS pinned to one
 thread, numba to ``--threads`` (default 1).
 
+``--app`` times the loop the app builds instead (:func:`app_loop`, what ``make bench``
+runs): the figure the issue's target is about, with the centralised reference filters,
+the plant's KDE and limit loop and the logged network metrics included.
+
 Targets (issue 14): the closed loop -- graph + consensus + per-robot filters + per-robot
 law (+ model and robot step) -- <= 20 ms per step (>= 50 steps/s) at N = 1024, n = 30,
 ``gradient="grid"``, radius 0.05 to 0.2 and k-nearest; N = 4096 must run. Each line
@@ -143,6 +147,62 @@ def run(
     clock.report(skip=2 if warmup == 0 else 0, target=target)
 
 
+def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
+    """Milliseconds per step of the loop the app builds with ``estimator=distributed``
+    (robots, plant's KDE and ``N -> infinity`` limit, graph, consensus, per-robot
+    filters, the centralised reference filters, network metrics, per-robot law),
+    median over ``steps`` steps after two untimed ones.
+    """
+    from benchmarks.suite import compose_config
+    from harness.build import build
+    from harness.loop import ClosedLoop
+
+    cfg = compose_config(
+        [
+            "estimator=distributed",
+            f"agents.n={n_robots}",
+            f"estimator.radius={radius}",
+            f"estimator.gradient={gradient}",
+        ]
+    )
+    parts = build(cfg)
+    rng = np.random.default_rng(0)
+    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, DT, rng)
+    loop.start()
+    for _ in range(2):
+        loop.step()
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        loop.step()
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def bench_app(quick: bool) -> bool:
+    """The app-built decentralised loop against the issue's target."""
+    print("Decentralised loop as the app builds it (n = 30, estimator=distributed):")
+    ok = True
+    cases = [(1024, 0.1, "grid", 200, TARGET_MS), (4096, 0.05, "grid", 20, None)]
+    cases.append((1024, 0.1, "filter", 1, TARGET_MS))
+    for n_robots, radius, gradient, steps, target in cases:
+        if quick:
+            steps = max(1, steps // 4)
+        ms = app_loop(n_robots, radius, gradient, steps)
+        name = f"N = {n_robots}, r = {radius}, gradient = {gradient}"
+        if target is None:
+            print(f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)")
+            continue
+        met = ms <= target
+        ok &= met
+        verdict = "OK" if met else "MISSED"
+        print(
+            f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)   "
+            f"target >= {1e3 / target:.0f} steps/s   {verdict}"
+        )
+    return ok
+
+
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--steps", type=int, default=12)
@@ -153,9 +213,18 @@ def main() -> None:
     )
     parser.add_argument("--only", type=int, default=None, help="run only this case (index)")
     parser.add_argument(
+        "--app", action="store_true", help="only the app-built loop (what make bench runs)"
+    )
+    parser.add_argument("--quick", action="store_true", help="fewer steps (with --app)")
+    parser.add_argument(
         "--gradient-filter", action="store_true", help="also time gradient='filter' (slow)"
     )
     args = parser.parse_args()
+    if args.app:
+        with threadpool_limits(1):
+            ok = bench_app(args.quick)
+        print("all targets met" if ok else "some targets MISSED")
+        return
     numba.set_num_threads(args.threads)
     print(
         f"numba threads {args.threads}; BLAS pinned to 1 thread; n = 30; "

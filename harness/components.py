@@ -162,6 +162,12 @@ class Control(Protocol):
         """
         ...
 
+    # Optional, for decentralised loops (``estimator=distributed``, where each robot
+    # evaluates the law on its own estimate): ``at_cells(p, qx, qy, cells) -> (vx, vy)``,
+    # the law's cell-centre values at flat cell indices from estimates given there
+    # (see harness.control.PaperControl.at_cells). Validation refuses a law without it
+    # in such a loop.
+
     def feedback_diffusivity(self, p0: np.ndarray) -> float | None:
         """Largest diffusivity (length^2 / s) the held feedback acts with, for a start
         ``p0``; None when the law has no such bound (the step bound is then not checked,

@@ -24,10 +24,19 @@ from harness.components import (
     number,
     require,
 )
+from harness.distributed import (
+    DistributedEstimate,
+    RobotEstimators,
+    algebraic_connectivity,
+    estimate_spread,
+    message_counts,
+    n_components,
+)
 from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.engines import FilterEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.kde import KDE
 from harness.records import Estimate, RobotEstimates, StepInput
 from harness.smoothing import Smoother
 
@@ -271,11 +280,12 @@ class DistributedEstimator:
     robot ``i`` with the law evaluated from its own estimates at its own position
     (:func:`harness.distributed.decentralised_velocities`, the control's ``at_cells``).
 
-    The centralised local filters run alongside on the plant's KDE, with the same
-    parameters, as the reference: their estimate is logged and measured against, never
-    used for control. With a complete graph (``radius >= sqrt(2)`` times the domain
-    side) one round is exact consensus and every robot's estimate is the centralised
-    one (tested to 1e-10).
+    The centralised local filters run alongside, with the same parameters, on the exact
+    KDE of the robots (the mean of the robots' own kernels, which consensus distributes;
+    the plant's KDE may be binned), as the reference: their estimate is logged and
+    measured against, never used for control. With a complete graph (``radius >=
+    sqrt(2)`` times the domain side) one round is exact consensus and every robot's
+    estimate is the centralised one (tested to 1e-10).
 
     What the estimate returned to the loop holds: ``p_hat``, ``q_hat`` the robots' mean
     estimate (the field the log shows, and the velocity field whose Fokker-Planck matrix
@@ -307,7 +317,7 @@ class DistributedEstimator:
             connectivity (an eigenvalue problem of ``N`` unknowns; held in between).
     """
 
-    uses_kde = True
+    uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
     decentralised = True
     GRADIENTS = ("grid", "filter")
 
@@ -332,8 +342,6 @@ class DistributedEstimator:
         robot: int = 0,
         connectivity_every: int = 100,
     ) -> None:
-        from harness.distributed import RobotEstimators
-
         self.grid = grid
         self.n_robots = integer("robots", robots, 1)
         h = number("bandwidth", bandwidth, 0.0, strict=True)
@@ -367,6 +375,9 @@ class DistributedEstimator:
         )  # fmt: skip
         measurement = MeasurementModel(self.n_robots, h, settings)
         self.central = FilterEngine.named("local")(grid, model.sigma, dt, measurement)
+        # the reference's KDE: the exact mean of the robots' kernels (the plant's KDE may
+        # be binned, and would differ from what consensus distributes by its binning bias)
+        self.kde = KDE(grid, h, mirror=True, method="exact")
         self._steps = 0
         self._connectivity = float("nan")
 
@@ -385,15 +396,7 @@ class DistributedEstimator:
         per_robot = 8 * fields * grid.size + 8 * (grid.nx + grid.ny) * 4
         return MemoryEstimate(default_memory(grid).nbytes + n * per_robot, "robots")
 
-    def _estimate(self, est, p_central: np.ndarray) -> Estimate:
-        from harness.distributed import (
-            algebraic_connectivity,
-            central_gap_l2,
-            consensus_l2,
-            message_counts,
-            n_components,
-        )
-
+    def _estimate(self, est: DistributedEstimate, p_central: np.ndarray) -> Estimate:
         g = self.grid
         adj = est.adjacency
         if self._steps % self.connectivity_every == 0:
@@ -401,9 +404,10 @@ class DistributedEstimator:
         self._steps += 1
         counts = message_counts(adj, self.network.consensus.rounds,
                                 self.network.consensus.fields * g.size)  # fmt: skip
+        spread, gap = estimate_spread(g, est.p_hat, p_central)
         network = {
-            "consensus_l2": consensus_l2(g, est.p_hat),
-            "central_gap_l2": central_gap_l2(g, est.p_hat, p_central),
+            "consensus_l2": spread,
+            "central_gap_l2": gap,
             "messages": counts["messages"],
             "mean_degree": counts["mean_degree"],
             "components": float(n_components(adj)),
@@ -421,8 +425,7 @@ class DistributedEstimator:
         """The graph and consensus at the first positions; every filter's start."""
         if inp.positions is None:
             raise ValueError("estimator=distributed needs robots (plant=agents)")
-        assert inp.p_kde is not None and inp.grad_kde is not None
-        p_central, _ = self.central.initialize(inp.p_kde, inp.grad_kde)
+        p_central, _ = self.central.initialize(*self.kde.exact(inp.positions))
         return self._estimate(self.network.initialize(inp.positions), p_central)
 
     def step(self, inp: StepInput) -> Estimate:
@@ -430,6 +433,6 @@ class DistributedEstimator:
         ``A`` (of the robots' mean estimate's field), and the reference's step.
         """
         assert inp.positions is not None and inp.a is not None and inp.v_applied is not None
-        assert inp.p_kde is not None and inp.grad_kde is not None
-        p_central, _ = self.central.step(inp.p_kde, inp.grad_kde, inp.v_applied, inp.a)
+        p_kde, grad_kde = self.kde.exact(inp.positions)
+        p_central, _ = self.central.step(p_kde, grad_kde, inp.v_applied, inp.a)
         return self._estimate(self.network.step(inp.positions, inp.a), p_central)

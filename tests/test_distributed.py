@@ -19,6 +19,7 @@ from harness.distributed import (
     decentralised_velocities,
     decentralised_velocities_reference,
     density_filter_reference,
+    estimate_spread,
     euler_maruyama_robots,
     message_counts,
     n_components,
@@ -284,6 +285,9 @@ def test_metrics_on_known_deviations(rng):
     p_hat = base + c[:, None] * e
     assert central_gap_l2(g, p_hat, base) == pytest.approx(np.mean(np.abs(c)), rel=1e-12)
     assert consensus_l2(g, p_hat) == pytest.approx(np.mean(np.abs(c - c.mean())), rel=1e-12)
+    spread, gap = estimate_spread(g, p_hat, base.reshape(g.shape))
+    assert spread == pytest.approx(np.mean(np.abs(c - c.mean())), rel=1e-12)
+    assert gap == pytest.approx(np.mean(np.abs(c)), rel=1e-12)
 
 
 def _iss_gap(delta: float, settings: FilterSettings) -> float:
