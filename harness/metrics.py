@@ -187,11 +187,13 @@ class SwarmTruth:
     def measure(self, n_robots: int) -> TargetMeasure:
         """``p_*`` as a discrete measure for ``n_robots``: exact cell masses on the grid
         for the exact transport, on a grid 4 times finer per axis for the sliced one
-        (whose value otherwise depends on how the projected atoms fall).
+        (whose value otherwise depends on how the projected atoms fall); on grids finer
+        than :data:`MEASURE_CELLS` per side, on that many cells instead
+        (:func:`measure_grid`).
         """
         refine = 1 if w2_method(n_robots) == "emd" else 4
         if refine not in self._measures:
-            self._measures[refine] = _target_measure(self.target, self.grid, refine)
+            self._measures[refine] = _target_measure(self.target, measure_grid(self.grid), refine)
         return self._measures[refine]
 
     def floors(self, n_robots: int, rng: np.random.Generator, draws: int) -> dict[str, str]:
@@ -220,16 +222,41 @@ class SwarmTruth:
         return out
 
 
+MEASURE_CELLS = 64
+"""Cells per side of the target measure of ``swarm_w2`` at most: the exact transport
+holds ``8 N M`` bytes for ``M`` atoms (0.5 GB and minutes per evaluation for 1024
+robots against a 256 x 256 grid's cells), and the distance should not depend on the
+simulation grid. On grids up to 64 per side the measure is the grid's cells."""
+
+
+def measure_grid(grid: Grid) -> Grid:
+    """The grid of the target measure: ``grid``, or ``MEASURE_CELLS`` cells per side of
+    the same domain when ``grid`` is finer.
+    """
+    if grid.nx <= MEASURE_CELLS and grid.ny <= MEASURE_CELLS:
+        return grid
+    nx, ny = min(grid.nx, MEASURE_CELLS), min(grid.ny, MEASURE_CELLS)
+    return Grid(nx, ny, grid.x0, grid.x1, grid.y0, grid.y1)
+
+
 def _target_measure(target: Target, grid: Grid, refine: int) -> TargetMeasure:
     """``p_*`` as cell masses at cell centres: exact masses on the grid refined
     ``refine`` times where the density has a closed form
-    (:meth:`TargetMeasure.from_density`), else cell values times cell area.
+    (:meth:`TargetMeasure.from_density`), else the target's cell values times cell area,
+    summed into the cells of ``grid`` that hold their centres (``grid`` may be coarser
+    than the target's, :func:`measure_grid`).
     """
     if target.density is not None:
         try:
             return TargetMeasure.from_density(target.density, grid, refine)
         except TypeError:  # no closed form for this density
             pass
+    fine = target.grid
+    fx, fy = fine.mesh
+    col = np.minimum(((fx - grid.x0) / grid.dx).astype(np.intp), grid.nx - 1)
+    row = np.minimum(((fy - grid.y0) / grid.dy).astype(np.intp), grid.ny - 1)
+    masses = np.zeros(grid.shape)
+    np.add.at(masses, (row.ravel(), col.ravel()), (target.p * fine.cell_area).ravel())
     x, y = grid.mesh
-    weights = (target.p * grid.cell_area).ravel()
+    weights = masses.ravel()
     return TargetMeasure(np.column_stack([x.ravel(), y.ravel()]), weights / weights.sum())

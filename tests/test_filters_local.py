@@ -138,3 +138,61 @@ def test_paper_loop_with_filters_converges_under_grid_refinement():
     # stable: the error never exceeds its start (about 1.0 for the box start)
     assert max(worst_64, worst_128) < 1.05
     assert abs(tail_64 - tail_128) <= 0.1 * tail_128, (tail_64, tail_128)
+
+
+def _band_basis(g: Grid, bp) -> np.ndarray:
+    """The band's non-constant orthonormal DCT-II modes as columns, built one by one."""
+    import scipy.fft as sfft
+
+    cols = []
+    for a, b in zip(bp.a, bp.b, strict=True):
+        unit = np.zeros(g.shape)
+        unit[b, a] = 1.0
+        cols.append(sfft.idctn(unit, type=2, norm="ortho").ravel())
+    return np.array(cols).T
+
+
+@pytest.mark.parametrize("shape", [(24, 20), (41, 37)])
+def test_band_poisson_is_the_galerkin_solve_of_the_dense_operator(shape, rng):
+    """The Gram matrix from the transforms of C equals ``B^T G^T diag(C) G B`` formed
+    with the sparse gradient matrix, and the solve is that system's, on a rectangular
+    grid with rough weights; for constant weights it is the grid solve projected."""
+    from harness.filters.common import BandLimit
+    from harness.filters.local import BandPoisson
+
+    nx, ny = shape
+    g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.8)
+    band = BandLimit(g, 2.5 / 0.06)
+    assert not band.is_identity
+    bp = BandPoisson(g, band)
+    basis = _band_basis(g, bp)
+    gm = g.gradient_matrix.toarray()
+    c = np.exp(rng.normal(size=2 * g.size))
+    dense = basis.T @ gm.T @ (c[:, None] * gm @ basis)
+    np.testing.assert_allclose(bp.gram(c), dense, atol=1e-12 * np.abs(dense).max())
+    b = gm.T @ (c * rng.normal(size=2 * g.size))
+    expected = basis @ np.linalg.solve(dense, basis.T @ b)
+    np.testing.assert_allclose(bp.solve(c, b), expected, atol=1e-10 * np.abs(expected).max())
+    const = np.full(2 * g.size, 3.0)
+    b = gm.T @ (const * rng.normal(size=2 * g.size))
+    grid_solve = band(WeightedPoisson(g).solve(const, b))
+    scale = np.abs(grid_solve).max()
+    np.testing.assert_allclose(bp.solve(const, b), grid_solve, atol=1e-10 * scale)
+
+
+def test_fine_grid_filters_solve_the_gradient_update_in_the_band():
+    """Above 1024 cells with a band limit the filters use the band solve; below, or
+    with every mode kept, the grid solve."""
+    model = MeasurementModel(1024, 0.04, FilterSettings())
+    assert LocalFilters(Grid.square(30), 5e-5, 0.01, model).band_poisson is None
+    assert LocalFilters(Grid.square(40), 5e-5, 0.01, model).band_poisson is not None
+    every = MeasurementModel(1024, 0.04, FilterSettings(band_limit=np.inf))
+    assert LocalFilters(Grid.square(40), 5e-5, 0.01, every).band_poisson is None
+
+
+@pytest.mark.slow
+def test_fast_filters_with_the_band_solve_track_reference():
+    """The accuracy bar on a grid where the band solve is used (n = 34: 1156 cells)."""
+    c = compare_filters(n=34, steps=150, seed=2)
+    worst_p, worst_q = c.ratios(skip=1)
+    assert worst_p < 0.1 and worst_q < 0.1, (worst_p, worst_q)

@@ -203,3 +203,26 @@ def test_emd_floor_band_small_n():
     pile = np.full((2, n), 0.5)
     assert swarm_w2(pile, target, "emd") > 3 * band["swarm_w2"].hi
     assert band["swarm_w2"].lo < band["swarm_w2"].mean < band["swarm_w2"].hi
+
+
+def test_transport_target_measure_stops_at_64_cells_per_side(rng):
+    """On grids finer than 64 per side ``swarm_w2`` compares with the same 64 x 64
+    measure, so it does not depend on the simulation grid (and stays affordable)."""
+    from harness.densities import DEFAULT_TARGET, Target
+    from harness.grid import Grid
+    from harness.metrics import SwarmTruth, _target_measure, measure_grid
+
+    positions = rng.random((2, 300))
+    values = []
+    for n in (64, 128, 256):
+        g = Grid.square(n)
+        truth = SwarmTruth(g, Target.from_density(g, DEFAULT_TARGET), 0.04, True, "auto", 1, 1, 1)
+        assert truth.measure(300).weights.size == 64 * 64
+        values.append(swarm_w2(positions, truth.measure(300)))
+    assert values[0] == values[1] == values[2]
+    # without a closed form: the fine cells' masses summed into the coarse cells
+    g = Grid.square(128)
+    target = Target.from_values(g, DEFAULT_TARGET.on_grid(g))
+    coarse = _target_measure(target, measure_grid(g), 1)
+    blocks = (target.p * g.cell_area).reshape(64, 2, 64, 2).sum(axis=(1, 3)).ravel()
+    np.testing.assert_allclose(coarse.weights, blocks / blocks.sum(), rtol=1e-12)

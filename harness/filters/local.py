@@ -234,24 +234,26 @@ class BandPoisson:
 
     def __init__(self, grid: Grid, band: BandLimit) -> None:
         self.grid = grid
-        b, a = np.nonzero(band.mask)
-        varying = (a > 0) | (b > 0)
-        self.a, self.b = a[varying], b[varying]
+        rows, cols = np.nonzero(band.mask)
+        varying = (rows > 0) | (cols > 0)
+        self.a, self.b = cols[varying], rows[varying]  # x and y mode numbers
         nx, ny = grid.nx, grid.ny
-        ca = np.where(self.a == 0, np.sqrt(1.0 / nx), np.sqrt(2.0 / nx))
-        cb = np.where(self.b == 0, np.sqrt(1.0 / ny), np.sqrt(2.0 / ny))
-        sx = np.sin(np.pi * self.a / nx) / grid.dx
-        sy = np.sin(np.pi * self.b / ny) / grid.dy
+        ca = np.sqrt(np.where(self.a == 0, 1.0, 2.0) / nx)  # orthonormal DCT-II scaling
+        cb = np.sqrt(np.where(self.b == 0, 1.0, 2.0) / ny)
+        s_a = np.sin(np.pi * self.a / nx) / grid.dx
+        s_b = np.sin(np.pi * self.b / ny) / grid.dy
         norm = np.outer(ca * cb, ca * cb) / 4.0
-        self._fx = (norm * np.outer(sx, sx)).ravel()
-        self._fy = (norm * np.outer(sy, sy)).ravel()
+        self._fx = (norm * np.outer(s_a, s_a)).ravel()
+        self._fy = (norm * np.outer(s_b, s_b)).ravel()
         a0, a1 = self.a[:, None], self.a[None, :]
         b0, b1 = self.b[:, None], self.b[None, :]
-        dx, sx = np.abs(a0 - a1), a0 + a1
-        dy, sy = np.abs(b0 - b1), b0 + b1
-        width = 2 * nx  # flat indices into E (2 n_y x 2 n_x): (|b-b'|, |a-a'|), ...
-        self._take = [(y * width + x).ravel() for y, x in ((dy, dx), (sy, dx), (dy, sx), (sy, sx))]
-        self._work = tuple(np.empty(dx.size) for _ in range(5))
+        # flat indices into E (2 n_y x 2 n_x) of (|b-b'|, |a-a'|), (b+b', |a-a'|),
+        # (|b-b'|, a+a'), (b+b', a+a')
+        width = 2 * nx
+        pairs = [(np.abs(b0 - b1), np.abs(a0 - a1)), (b0 + b1, np.abs(a0 - a1)),
+                 (np.abs(b0 - b1), a0 + a1), (b0 + b1, a0 + a1)]  # fmt: skip
+        self._take = [(y * width + x).ravel() for y, x in pairs]
+        self._work = tuple(np.empty(self.a.size**2) for _ in range(5))
 
     @property
     def modes(self) -> int:
