@@ -407,6 +407,11 @@ def resolution(plant: Any, estimator: Any) -> float | None:
     return of(measured) if callable(of) else None
 
 
+def _defined_by(cls: type, name: str) -> type:
+    """The class in ``cls``'s MRO whose body defines ``name``."""
+    return next(base for base in cls.__mro__ if name in vars(base))
+
+
 def check_built(
     cfg: DictConfig, grid: Grid, target: Target, control: Control, plant: Any, estimator: Any
 ) -> None:
@@ -434,6 +439,14 @@ def check_built(
                 "control", type(control).__name__,
                 "a law each robot can evaluate at its own cells (a method at_cells, see "
                 "harness.control.PaperControl.at_cells) for estimator=distributed",
+            )  # fmt: skip
+        law, cells = _defined_by(type(control), "__call__"), _defined_by(type(control), "at_cells")
+        if law is not cells and issubclass(law, cells):
+            raise ConfigError(
+                "control", type(control).__name__,
+                f"a law whose at_cells is its own: {law.__name__} overrides __call__ but "
+                f"inherits at_cells from {cells.__name__}, so each robot of "
+                "estimator=distributed would move by the parent's law; define at_cells",
             )  # fmt: skip
     rate = getattr(control, "feedback_diffusivity", None)
     diffusivity = rate(target.p) if rate is not None else None

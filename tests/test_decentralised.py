@@ -12,6 +12,7 @@ import pytest
 from analysis.load import load_run
 from harness.agents import interpolate
 from harness.build import build
+from harness.control import PaperControl
 from harness.loop import ClosedLoop
 from harness.metrics import METRIC_KEYS, NETWORK_KEYS
 from harness.run import run
@@ -135,3 +136,18 @@ class FieldOnly:
 
     def feedback_diffusivity(self, p0):
         return self.inner.feedback_diffusivity(p0)
+
+
+class CappedPaper(PaperControl):
+    """A law that changes ``__call__`` but inherits ``at_cells``: refused."""
+
+    def __call__(self, p_hat, q_hat):
+        return super().__call__(p_hat, q_hat)
+
+
+def test_a_law_that_inherits_another_laws_cell_values_is_refused(refusal):
+    message = refusal(
+        ["estimator=distributed", *SMALL, "control._target_=tests.test_decentralised.CappedPaper"]
+    )
+    assert message is not None and message.startswith("invalid config: control="), message
+    assert "inherits at_cells from PaperControl" in message
