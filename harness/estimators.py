@@ -292,6 +292,9 @@ class DistributedEstimator:
     is the shared transport model of every robot's filter and of the reference); the
     traces of the reference; and :class:`~harness.records.RobotEstimates`.
 
+    The plant's ``p_true`` stays the centralised loop's ``N -> infinity`` limit (the
+    decentralised loop's own limit depends on the graph and is not modelled).
+
     The robots' filters keep every grid mode (no band limit; a per-robot DCT would
     cost ``O(N M log M)`` per step), and so does the reference, so that the two differ
     only by what consensus does; the step bound is therefore the grid's

@@ -321,3 +321,38 @@ def jacobi_series(
     """
     kernel = _jacobi_parallel if rhs.size >= PARALLEL_MIN_CELLS else _jacobi_serial
     return kernel(indptr, indices, data, dt, rhs, tol, max_iter)
+
+
+@numba.njit(cache=True, nogil=True)
+def band_gram(
+    ex: np.ndarray,
+    ey: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    wx: np.ndarray,
+    wy: np.ndarray,
+    out: np.ndarray,
+) -> None:  # pragma: no cover - compiled
+    """The Gram matrix of :class:`harness.filters.local.BandPoisson` in one pass over
+    the pairs of modes ``i <= j`` (symmetric; mirrored), reading the extended
+    transforms ``ex``, ``ey`` (``2 n_y x 2 n_x``) at the sum and difference
+    frequencies:
+
+        out[i, j] = wx_i wx_j (E_x(db, da) + E_x(sb, da) - E_x(db, sa) - E_x(sb, sa))
+                  + wy_i wy_j (E_y(db, da) - E_y(sb, da) + E_y(db, sa) - E_y(sb, sa)),
+
+    ``da = |a_i - a_j|``, ``sa = a_i + a_j`` (likewise ``b``). The numpy statement is
+    :meth:`~harness.filters.local.BandPoisson.gram_reference`.
+    """
+    k = a.size
+    for i in range(k):
+        for j in range(i, k):
+            da = abs(a[i] - a[j])
+            sa = a[i] + a[j]
+            db = abs(b[i] - b[j])
+            sb = b[i] + b[j]
+            gx = ex[db, da] + ex[sb, da] - ex[db, sa] - ex[sb, sa]
+            gy = ey[db, da] - ey[sb, da] + ey[db, sa] - ey[sb, sa]
+            v = wx[i] * wx[j] * gx + wy[i] * wy[j] * gy
+            out[i, j] = v
+            out[j, i] = v

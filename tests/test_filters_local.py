@@ -170,6 +170,9 @@ def test_band_poisson_is_the_galerkin_solve_of_the_dense_operator(shape, rng):
     c = np.exp(rng.normal(size=2 * g.size))
     dense = basis.T @ gm.T @ (c[:, None] * gm @ basis)
     np.testing.assert_allclose(bp.gram(c), dense, atol=1e-12 * np.abs(dense).max())
+    np.testing.assert_allclose(
+        bp.gram_reference(c), bp.gram(c), rtol=0, atol=1e-13 * np.abs(dense).max()
+    )
     b = gm.T @ (c * rng.normal(size=2 * g.size))
     expected = basis @ np.linalg.solve(dense, basis.T @ b)
     np.testing.assert_allclose(bp.solve(c, b), expected, atol=1e-10 * np.abs(expected).max())
