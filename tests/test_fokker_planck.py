@@ -17,6 +17,7 @@ from harness.fokker_planck import (
     implicit_solve,
     jacobi_solve,
     rate,
+    red_black_solve,
 )
 from harness.grid import Grid
 from harness.velocity import VelocityField
@@ -332,3 +333,65 @@ def test_jacobi_solve_refuses_when_too_many_terms(rng):
     p = Uniform().on_grid(g)
     v = random_velocity(g, rng, 1.0)
     np.testing.assert_allclose(op.step(p, v, 10.0), op.step_lu(p, v, 10.0), rtol=1e-12)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.sampled_from([16, 64, 128]),
+    dt=st.sampled_from([0.01, 0.05, 0.2]),
+    sigma=st.sampled_from([0.0, 5e-5, 1e-3]),
+    scale=st.sampled_from([0.01, 0.1, 1.0]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_red_black_solve_is_positive_mass_exact_and_matches_lu(n, dt, sigma, scale, seed):
+    rng = np.random.default_rng(seed)
+    g = Grid.square(n)
+    a = FokkerPlanck(g, sigma).matrix(random_velocity(g, rng, scale))
+    p = random_density(g, rng).ravel()
+    p[rng.random(p.size) < 0.2] = 0.0
+    x = red_black_solve(a, dt, p, g.nx)
+    if x is None:  # more sweeps than the LU threshold: nothing to compare
+        return
+    ref = spla.splu((sp.identity(g.size, format="csc") - dt * a).tocsc()).solve(p)
+    assert np.abs(x - ref).max() <= 1e-10 * np.abs(ref).max()
+    assert abs(x.sum() - p.sum()) <= 1e-12 * p.sum()
+    assert x.min() >= 0.0
+
+
+def test_red_black_needs_about_half_the_jacobi_sweeps_on_a_rectangle(rng):
+    """Rectangular grid (the colouring follows the rows of nx cells): the solution
+    matches LU, and the sweeps are at most 60 % of the Jacobi series' terms."""
+    from harness.kernels import jacobi_series, red_black
+
+    g = Grid(48, 40, 0.0, 1.2, 0.0, 1.0)
+    a = FokkerPlanck(g, 5e-5).matrix(random_velocity(g, rng, 1.0))
+    p = random_density(g, rng).ravel()
+    x, sweeps, res = red_black(a.indptr, a.indices, a.data, 0.05, p, g.nx, 1e-15, 400)
+    _, terms, _ = jacobi_series(a.indptr, a.indices, a.data, 0.05, p, 1e-15, 400)
+    ref = spla.splu((sp.identity(g.size, format="csc") - 0.05 * a).tocsc()).solve(p)
+    assert res <= 1e-15
+    assert np.abs(x - ref).max() <= 1e-12 * np.abs(ref).max()
+    assert sweeps <= 0.6 * terms, (sweeps, terms)
+
+
+def test_red_black_does_not_depend_on_thread_count(rng):
+    """The parallel build with 1 and 2 threads and the serial build give the same bits."""
+    import numba
+
+    from harness.kernels import _red_black_parallel, _red_black_serial
+
+    g = Grid.square(128)
+    op = FokkerPlanck(g, 5e-5)
+    p, v = _mid_run_velocity(g, rng)
+    a = op.matrix(v)
+    args = (a.indptr, a.indices, a.data, 0.01, p.ravel(), g.nx, 1e-15, 200)
+    before = numba.get_num_threads()
+    try:
+        results = []
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            results.append(_red_black_parallel(*args)[0])
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(results[0], results[1])
+    assert np.array_equal(results[0], _red_black_serial(*args)[0])

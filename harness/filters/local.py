@@ -421,7 +421,7 @@ class LocalFilters:
         k, k_g = self.measurement.constants
         a = self.operator.matrix(v_applied) if a is None else a
         # predict: states by the grid transition, variances by F1 o F1
-        states = implicit_solve(a, dt, np.column_stack([self.x, self.x_g]))
+        states = implicit_solve(a, dt, np.column_stack([self.x, self.x_g]), g.nx)
         x, x_g = states[:, 0], states[:, 1]
         q = s.process_noise * dt
         # one product for the density variances and both gradient components
