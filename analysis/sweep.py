@@ -501,6 +501,7 @@ def network_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
         ax.set_xlabel("communication radius r (length)")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
+    axes[2].set_yscale("symlog", linthresh=1.0)  # r = 0 sends no messages
     return save_figure(fig, out, "distributed_r")
 
 

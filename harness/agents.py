@@ -193,8 +193,12 @@ class Swarm:
         return self.positions
 
     def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
-        """Plain-numpy statement of :meth:`step` (same random draws, same result)."""
+        """Plain-numpy statement of :meth:`step` (same random draws, same result; with
+        per-robot velocities ``v.robots`` it is :meth:`step_robots`, already numpy).
+        """
         g = self.grid
+        if v.robots is not None:
+            return self.step_robots(v.robots, dt, rng)
         draw_normals(rng, self._noise)
         self._noise *= np.sqrt(2.0 * self.sigma * dt)
         drift = interpolate(g, v.centres, self.positions)

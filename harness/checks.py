@@ -407,9 +407,11 @@ def resolution(plant: Any, estimator: Any) -> float | None:
     return of(measured) if callable(of) else None
 
 
-def _defined_by(cls: type, name: str) -> type:
-    """The class in ``cls``'s MRO whose body defines ``name``."""
-    return next(base for base in cls.__mro__ if name in vars(base))
+def _defined_by(cls: type, name: str) -> type | None:
+    """The class in ``cls``'s MRO whose body defines ``name`` (None when no class body
+    does, e.g. an instance attribute).
+    """
+    return next((base for base in cls.__mro__ if name in vars(base)), None)
 
 
 def check_built(
@@ -441,7 +443,7 @@ def check_built(
                 "harness.control.PaperControl.at_cells) for estimator=distributed",
             )  # fmt: skip
         law, cells = _defined_by(type(control), "__call__"), _defined_by(type(control), "at_cells")
-        if law is not cells and issubclass(law, cells):
+        if law is not None and cells is not None and law is not cells and issubclass(law, cells):
             raise ConfigError(
                 "control", type(control).__name__,
                 f"a law whose at_cells is its own: {law.__name__} overrides __call__ but "

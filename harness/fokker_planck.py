@@ -370,10 +370,12 @@ def red_black_solve(
     bound = int(np.ceil(np.log(tol) / np.log(q))) if q > 0.0 else 1
     if bound > _MAX_JACOBI_TERMS:
         return None
-    x, _, res = red_black(
+    x, sweeps, res = red_black(
         a.indptr, a.indices, a.data, float(dt), np.ascontiguousarray(rhs, dtype=float),
         int(nx), tol, bound + 2,
     )  # fmt: skip
+    if sweeps < 0:
+        raise ValueError(f"not a 5-point operator on a grid of {nx} columns ({a.shape[0]} rows)")
     return x if res <= tol else None
 
 

@@ -321,31 +321,43 @@ def _red_black(
     computes anyway, so each sweep is one pass over the matrix. At the first sweep ``K``
     with ``||r||_1 <= tol ||rhs||_1`` the red cells' new values are taken back (``x_i =
     (s_i - r_i) / D_i``, to round-off) and ``(x_K + r, K, ||r||_1 / ||rhs||_1)`` is
-    returned; after ``max_iter`` sweeps the last iterate with its residual norm. Each
+    returned; after ``max_iter`` sweeps (at least one) the iterate ``x_K`` itself with
+    its residual norm. An operator that is not 5-point on rows of ``nx`` cells (a
+    coupling other than the four grid neighbours, or ``nx`` not dividing the size)
+    returns ``(0, -1, inf)``: the colouring would be wrong. Each
     phase is one parallel pass over the grid's rows (a cell's neighbours have the
     other colour, so the cells of one colour are independent), and every sum has a
     fixed order, so the result does not depend on the number of threads.
     """
     m = rhs.size
+    ny = m // nx
     diag = np.empty(m)
-    for i in numba.prange(m):
-        a_ii = 0.0
-        for jj in range(indptr[i], indptr[i + 1]):
-            if indices[jj] == i:
-                a_ii += data[jj]
-        diag[i] = 1.0 - dt * a_ii
     off = np.empty(data.size)
-    for i in numba.prange(m):
-        for jj in range(indptr[i], indptr[i + 1]):
-            off[jj] = 0.0 if indices[jj] == i else dt * data[jj]
+    foreign = np.zeros(ny, dtype=np.int64)  # couplings that are not grid neighbours
+    for row in numba.prange(ny):
+        for col in range(nx):
+            i = row * nx + col
+            a_ii = 0.0
+            for jj in range(indptr[i], indptr[i + 1]):
+                step = indices[jj] - i
+                if step == 0:
+                    a_ii += data[jj]
+                    off[jj] = 0.0
+                    continue
+                off[jj] = dt * data[jj]
+                beside = (step == 1 and col < nx - 1) or (step == -1 and col > 0)
+                if not (beside or step == nx or step == -nx) and data[jj] != 0.0:
+                    foreign[row] += 1
+            diag[i] = 1.0 - dt * a_ii
+    x = np.zeros(m)
+    r = np.zeros(m)
+    if ny * nx != m or foreign.sum() > 0:
+        return x, -1, np.inf  # not a 5-point operator on rows of nx cells
     norm_b = 0.0
     for i in range(m):
         norm_b += abs(rhs[i])
-    x = np.zeros(m)
-    r = np.zeros(m)
     if norm_b == 0.0:
         return x, 0, 0.0
-    ny = m // nx
     partial = np.empty(ny)
     sweeps = 0
     res = np.inf
@@ -368,7 +380,7 @@ def _red_black(
             for row in range(ny):
                 res += partial[row]
             res /= norm_b
-            if res <= tol or sweeps >= max_iter:
+            if res <= tol or sweeps >= max(max_iter, 1):
                 break
         # black cells from the new red ones
         for row in numba.prange(ny):
@@ -379,11 +391,13 @@ def _red_black(
                     s += off[jj] * x[indices[jj]]
                 x[i] = s / diag[i]
         sweeps += 1
-    # back to the last full sweep on red cells, plus the residual
+    # back to the last full sweep on red cells, plus the residual when converged (the
+    # returned norm is then that of the corrected vector's residual before correction)
+    add = 1.0 if res <= tol else 0.0
     for row in numba.prange(ny):
         for col in range(row % 2, nx, 2):
             i = row * nx + col
-            x[i] = (x[i] - r[i] / diag[i]) + r[i]
+            x[i] = (x[i] - r[i] / diag[i]) + add * r[i]
     return x, sweeps, res
 
 

@@ -70,6 +70,10 @@ class RobotEstimates:
             :func:`harness.metrics.network_metrics`): ``consensus_l2``,
             ``central_gap_l2``, ``messages``, ``mean_degree``, ``components``,
             ``algebraic_connectivity``.
+
+    ``p_hat`` and ``q_hat`` are the filters' own state arrays (a copy would cost ``N M``
+    values per step), like ``StepRecord.positions``: valid until the next step, which
+    overwrites them in place. Observers that keep them must copy.
     """
 
     p_hat: np.ndarray

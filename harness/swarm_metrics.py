@@ -42,8 +42,9 @@ quadrature of ``p(x) K(c, x)`` with the KDE's own kernel function, for any densi
 with an ``evaluate(x, y, grid)`` method; it agrees to ~1e-12.
 
 Which K_h * p the loop sees. With more than ``exact_max_robots`` robots the KDE
-bins them linearly onto a grid ``bin_factor`` times finer before smoothing; its
-expectation is then ``K_h * p`` plus the binning bias, ``O((dx / (bin_factor h))^2)``
+bins them linearly onto a grid ``bin_factor`` times finer (at most the kernel's
+resolution needs, :func:`harness.kde.binning_nodes`) before smoothing; its expectation is
+then ``K_h * p`` plus the binning bias, ``O((s / h)^2)`` for node spacing ``s``
 relative (about 1e-3 for the paper's settings, ``~1e-3`` in ``swarm_l2`` against a
 floor of 0.03 at ``N = 65536``). The floors use the same KDE, so they include it.
 

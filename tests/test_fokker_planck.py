@@ -395,3 +395,27 @@ def test_red_black_does_not_depend_on_thread_count(rng):
         numba.set_num_threads(before)
     assert np.array_equal(results[0], results[1])
     assert np.array_equal(results[0], _red_black_serial(*args)[0])
+
+
+def test_red_black_refuses_a_wrong_row_length(rng):
+    """The colouring needs the grid's nx: a wrong one is refused, not solved wrongly."""
+    g = Grid(37, 23)
+    a = FokkerPlanck(g, 5e-5).matrix(random_velocity(g, rng, 1.0))
+    p = random_density(g, rng).ravel()
+    assert red_black_solve(a, 0.01, p, g.nx) is not None
+    for wrong in (g.nx + 1, g.ny, 1):
+        with pytest.raises(ValueError, match="5-point"):
+            red_black_solve(a, 0.01, p, wrong)
+
+
+def test_red_black_at_its_sweep_limit_returns_the_iterate_and_its_residual(rng):
+    from harness.kernels import red_black
+
+    g = Grid.square(32)
+    a = FokkerPlanck(g, 5e-5).matrix(random_velocity(g, rng, 1.0))
+    p = random_density(g, rng).ravel()
+    system = (sp.identity(g.size, format="csr") - 0.2 * a).tocsr()
+    x, sweeps, res = red_black(a.indptr, a.indices, a.data, 0.2, p, g.nx, 1e-15, 2)
+    assert sweeps == 2 and res > 1e-15
+    residual = np.abs(p - system @ x).sum() / np.abs(p).sum()
+    assert residual == pytest.approx(res, rel=1e-9)
