@@ -251,12 +251,12 @@ def test_matrix_equals_bincount_reference_bit_for_bit(rng):
 
 
 @pytest.mark.parametrize("n", [128, 256])
-def test_jacobi_step_matches_sparse_lu_at_paper_settings(n, rng):
+def test_implicit_step_matches_sparse_lu_at_paper_settings(n, rng):
     g = Grid.square(n)
     op = FokkerPlanck(g, 5e-5)
     p, v = _mid_run_velocity(g, rng)
     a = op.matrix(v)
-    # the Jacobi path is the one taken here (the plain series would need > 12 terms)
+    # the red-black path is the one taken here (the plain series would need > 12 terms)
     assert _series_terms(0.01 * 2 * np.abs(a.diagonal()).max()) > _MAX_SERIES_TERMS
     fast = op.step(p, v, 0.01)
     ref = op.step_lu(p, v, 0.01)
@@ -265,6 +265,7 @@ def test_jacobi_step_matches_sparse_lu_at_paper_settings(n, rng):
     assert fast.min() >= 0.0
 
 
+@pytest.mark.parametrize("solver", ["jacobi", "red_black"])
 @settings(max_examples=30, deadline=None)
 @given(
     n=st.sampled_from([16, 64, 128]),
@@ -273,7 +274,8 @@ def test_jacobi_step_matches_sparse_lu_at_paper_settings(n, rng):
     scale=st.sampled_from([0.01, 0.1, 1.0]),
     seed=st.integers(0, 2**32 - 1),
 )
-def test_jacobi_solve_is_positive_mass_exact_and_matches_lu(n, dt, sigma, scale, seed):
+def test_implicit_solvers_are_positive_mass_exact_and_match_lu(solver, n, dt, sigma, scale, seed):
+    """The Jacobi series and red-black Gauss-Seidel with their mass correction."""
     rng = np.random.default_rng(seed)
     g = Grid.square(n)
     op = FokkerPlanck(g, sigma)
@@ -281,7 +283,7 @@ def test_jacobi_solve_is_positive_mass_exact_and_matches_lu(n, dt, sigma, scale,
     p = random_density(g, rng).ravel()
     # rhs with zeros too: positivity must hold where the density vanishes
     p[rng.random(p.size) < 0.2] = 0.0
-    x = jacobi_solve(a, dt, p)
+    x = jacobi_solve(a, dt, p) if solver == "jacobi" else red_black_solve(a, dt, p, g.nx)
     if x is None:  # more terms than the LU threshold: nothing to compare
         return
     ref = spla.splu((sp.identity(g.size, format="csc") - dt * a).tocsc()).solve(p)
@@ -301,27 +303,32 @@ def test_jacobi_solve_signed_rhs_and_columns_match_lu(rng):
     np.testing.assert_allclose(x.sum(axis=0), rhs.sum(axis=0), atol=1e-12 * np.abs(rhs).sum())
 
 
-def test_jacobi_series_does_not_depend_on_thread_count(rng):
-    """The parallel build with 1 and 2 threads and the serial build give the same bits."""
+@pytest.mark.parametrize("kernel", ["jacobi", "red_black"])
+def test_implicit_kernels_do_not_depend_on_thread_count(rng, kernel):
+    """The parallel build with 1 and 2 threads and the serial build give the same bits
+    (the Jacobi series and red-black Gauss-Seidel)."""
     import numba
 
-    from harness.kernels import _jacobi_parallel, _jacobi_serial
+    from harness import kernels
 
+    parallel = getattr(kernels, f"_{kernel}_parallel")
+    serial = getattr(kernels, f"_{kernel}_serial")
     g = Grid.square(128)
     op = FokkerPlanck(g, 5e-5)
     p, v = _mid_run_velocity(g, rng)
     a = op.matrix(v)
-    args = (a.indptr, a.indices, a.data, 0.01, p.ravel(), 1e-15, 200)
+    grid_args = (g.nx,) if kernel == "red_black" else ()
+    args = (a.indptr, a.indices, a.data, 0.01, p.ravel(), *grid_args, 1e-15, 200)
     before = numba.get_num_threads()
     try:
         results = []
         for threads in (1, 2):
             numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-            results.append(_jacobi_parallel(*args)[0])
+            results.append(parallel(*args)[0])
     finally:
         numba.set_num_threads(before)
     assert np.array_equal(results[0], results[1])
-    assert np.array_equal(results[0], _jacobi_serial(*args)[0])
+    assert np.array_equal(results[0], serial(*args)[0])
 
 
 def test_jacobi_solve_refuses_when_too_many_terms(rng):
@@ -333,29 +340,6 @@ def test_jacobi_solve_refuses_when_too_many_terms(rng):
     p = Uniform().on_grid(g)
     v = random_velocity(g, rng, 1.0)
     np.testing.assert_allclose(op.step(p, v, 10.0), op.step_lu(p, v, 10.0), rtol=1e-12)
-
-
-@settings(max_examples=30, deadline=None)
-@given(
-    n=st.sampled_from([16, 64, 128]),
-    dt=st.sampled_from([0.01, 0.05, 0.2]),
-    sigma=st.sampled_from([0.0, 5e-5, 1e-3]),
-    scale=st.sampled_from([0.01, 0.1, 1.0]),
-    seed=st.integers(0, 2**32 - 1),
-)
-def test_red_black_solve_is_positive_mass_exact_and_matches_lu(n, dt, sigma, scale, seed):
-    rng = np.random.default_rng(seed)
-    g = Grid.square(n)
-    a = FokkerPlanck(g, sigma).matrix(random_velocity(g, rng, scale))
-    p = random_density(g, rng).ravel()
-    p[rng.random(p.size) < 0.2] = 0.0
-    x = red_black_solve(a, dt, p, g.nx)
-    if x is None:  # more sweeps than the LU threshold: nothing to compare
-        return
-    ref = spla.splu((sp.identity(g.size, format="csc") - dt * a).tocsc()).solve(p)
-    assert np.abs(x - ref).max() <= 1e-10 * np.abs(ref).max()
-    assert abs(x.sum() - p.sum()) <= 1e-12 * p.sum()
-    assert x.min() >= 0.0
 
 
 def test_red_black_needs_about_half_the_jacobi_sweeps_on_a_rectangle(rng):
@@ -372,29 +356,6 @@ def test_red_black_needs_about_half_the_jacobi_sweeps_on_a_rectangle(rng):
     assert res <= 1e-15
     assert np.abs(x - ref).max() <= 1e-12 * np.abs(ref).max()
     assert sweeps <= 0.6 * terms, (sweeps, terms)
-
-
-def test_red_black_does_not_depend_on_thread_count(rng):
-    """The parallel build with 1 and 2 threads and the serial build give the same bits."""
-    import numba
-
-    from harness.kernels import _red_black_parallel, _red_black_serial
-
-    g = Grid.square(128)
-    op = FokkerPlanck(g, 5e-5)
-    p, v = _mid_run_velocity(g, rng)
-    a = op.matrix(v)
-    args = (a.indptr, a.indices, a.data, 0.01, p.ravel(), g.nx, 1e-15, 200)
-    before = numba.get_num_threads()
-    try:
-        results = []
-        for threads in (1, 2):
-            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-            results.append(_red_black_parallel(*args)[0])
-    finally:
-        numba.set_num_threads(before)
-    assert np.array_equal(results[0], results[1])
-    assert np.array_equal(results[0], _red_black_serial(*args)[0])
 
 
 def test_red_black_refuses_a_wrong_row_length(rng):
