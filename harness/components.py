@@ -111,6 +111,10 @@ class Plant(Protocol):
             state (``meanfield``) or the loop's deterministic ``N -> infinity`` limit
             (``agents``).
         positions: Robot positions ``(2, N)`` (length), or None without robots.
+
+    Optional: ``has_robots = True`` for a plant whose robots can move by velocities of
+    their own (``VelocityField.robots``, decentralised control); validation refuses
+    ``estimator=distributed`` on a plant without it.
     """
 
     density: np.ndarray

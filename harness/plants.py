@@ -78,7 +78,7 @@ class Agents:
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
 
-    has_robots = True
+    has_robots = True  # robots follow per-robot velocities too (VelocityField.robots)
 
     BYTES_PER_ROBOT = 200
     """Per robot: positions, noise and interpolation temporaries (float64, 2 x 8 bytes
