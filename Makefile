@@ -41,7 +41,7 @@ format: $(STAMP) ## Format the code with ruff
 	$(PY) -m ruff format .
 	$(PY) -m ruff check --fix .
 
-bench: $(STAMP) ## Speed benchmarks, each figure next to its target (about 10 min)
+bench: $(STAMP) ## Speed benchmarks, each figure next to its target (about 4 min)
 	$(PY) -m benchmarks.suite
 	$(PY) -m benchmarks.numerics
 	$(PY) -m benchmarks.distributed --app
@@ -59,9 +59,9 @@ reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write it
 	@echo "figures:"; ls -1 figures/* figures/meanfield/*
 
 STUDIES := iss_gain conv_grid conv_sigma conv_alpha agents_n debias_n
-# run alone (make sweep-conv_grid_agents): the agent loop on grids up to 256 is too slow for
-# the sweeps' 30-minute budget on 2 cores until the fine-grid speed targets are met;
-# distributed_r (decentralised loop against the radius, issue 14) takes about 30 min alone
+# run alone (make sweep-NAME), each about half an hour on 2 cores, beyond the sweeps' 30-minute
+# budget: conv_grid_agents (agent loop on grids up to 256, 26 min) and distributed_r
+# (decentralised loop against the communication radius, 28 min)
 EXTRA_STUDIES := conv_grid_agents distributed_r
 
 sweeps: $(STAMP) ## Run the study presets (about 25 min on 2 cores) and write figures/sweeps/
