@@ -1095,6 +1095,16 @@ class DynamicAverageConsensus:
                 _spmm(w.indptr, w.indices, w.data, self.z, self._buf)
             self.z, self._buf = self._buf, self.z
 
+    def kde(self) -> tuple[np.ndarray, np.ndarray]:
+        """The exact KDE of the current positions, ``(p, grad p)`` of shapes ``(ny, nx)``
+        and ``(2, ny, nx)``: the mean of the robots' kernels, from the factors the last
+        step computed (:meth:`harness.kde.KDE.exact` without evaluating them again).
+        """
+        assert self._factors is not None, "call initialize first"
+        kx, dkx, ky, dky = self._factors
+        n = kx.shape[0]
+        return ky.T @ kx / n, np.stack([ky.T @ dkx / n, dky.T @ kx / n])
+
     def initialize(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
         """``z(0) = W^{m_0} phi(0)`` (``m_0`` initial rounds); returns ``z`` ``(N, F M)``."""
         n = positions.shape[1]

@@ -36,7 +36,6 @@ from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.engines import FilterEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.kde import KDE
 from harness.records import Estimate, RobotEstimates, StepInput
 from harness.smoothing import Smoother
 
@@ -378,9 +377,6 @@ class DistributedEstimator:
         )  # fmt: skip
         measurement = MeasurementModel(self.n_robots, h, settings)
         self.central = FilterEngine.named("local")(grid, model.sigma, dt, measurement)
-        # the reference's KDE: the exact mean of the robots' kernels (the plant's KDE may
-        # be binned, and would differ from what consensus distributes by its binning bias)
-        self.kde = KDE(grid, h, mirror=True, method="exact")
         self._steps = 0
         self._connectivity = float("nan")
 
@@ -428,14 +424,16 @@ class DistributedEstimator:
         """The graph and consensus at the first positions; every filter's start."""
         if inp.positions is None:
             raise ValueError("estimator=distributed needs robots (plant=agents)")
-        p_central, _ = self.central.initialize(*self.kde.exact(inp.positions))
-        return self._estimate(self.network.initialize(inp.positions), p_central)
+        robots = self.network.initialize(inp.positions)
+        p_central, _ = self.central.initialize(*self.network.consensus.kde())
+        return self._estimate(robots, p_central)
 
     def step(self, inp: StepInput) -> Estimate:
         """New graph, consensus, every robot's filter step under the shared model
         ``A`` (of the robots' mean estimate's field), and the reference's step.
         """
         assert inp.positions is not None and inp.a is not None and inp.v_applied is not None
-        p_kde, grad_kde = self.kde.exact(inp.positions)
+        robots = self.network.step(inp.positions, inp.a)
+        p_kde, grad_kde = self.network.consensus.kde()  # the kernels consensus just used
         p_central, _ = self.central.step(p_kde, grad_kde, inp.v_applied, inp.a)
-        return self._estimate(self.network.step(inp.positions, inp.a), p_central)
+        return self._estimate(robots, p_central)

@@ -476,3 +476,16 @@ def test_compiled_kernel_factors_equal_the_kde_kernel(rng, shape, h):
     )
     for a, b in zip(got, ref, strict=True):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-13 * abs(b).max())
+
+
+def test_consensus_kde_is_the_exact_kde_of_the_positions(rng):
+    """The reference's measurement, from the kernel factors consensus computed, equals
+    the KDE's exact path on the same positions."""
+    g = Grid(14, 11, 0.0, 1.0, 0.0, 0.8)
+    pos = rng.random((2, 90)) * np.array([[1.0], [0.8]])
+    dac = DynamicAverageConsensus(g, H)
+    dac.initialize(pos, sp.identity(90, format="csr"))
+    p, grad = dac.kde()
+    p_ref, grad_ref = KDE(g, H, method="exact").exact(pos)
+    np.testing.assert_allclose(p, p_ref, rtol=1e-12, atol=1e-12 * p_ref.max())
+    np.testing.assert_allclose(grad, grad_ref, rtol=1e-12, atol=1e-12 * np.abs(grad_ref).max())
