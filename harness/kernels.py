@@ -446,8 +446,7 @@ def jacobi_series(
     return kernel(indptr, indices, data, dt, rhs, tol, max_iter)
 
 
-@numba.njit(cache=True, nogil=True)
-def band_gram(
+def _band_gram(
     ex: np.ndarray,
     ey: np.ndarray,
     a: np.ndarray,
@@ -456,26 +455,30 @@ def band_gram(
     wy: np.ndarray,
     out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """The Gram matrix of :class:`harness.filters.local.BandPoisson` in one pass over
-    the pairs of modes ``i <= j`` (symmetric; mirrored), reading the extended
-    transforms ``ex``, ``ey`` (``2 n_y x 2 n_x``) at the sum and difference
-    frequencies:
+    """The Gram matrix of :class:`harness.filters.local.BandPoisson`, its upper
+    triangle ``out[i, j]``, ``j >= i`` (the strict lower triangle is not written), one
+    row of pairs per (parallel) iteration, reading the extended transforms ``ex``,
+    ``ey`` (``2 n_y x 2 n_x``) at the sum and difference frequencies:
 
         out[i, j] = wx_i wx_j (E_x(db, da) + E_x(sb, da) - E_x(db, sa) - E_x(sb, sa))
                   + wy_i wy_j (E_y(db, da) - E_y(sb, da) + E_y(db, sa) - E_y(sb, sa)),
 
-    ``da = |a_i - a_j|``, ``sa = a_i + a_j`` (likewise ``b``). The numpy statement is
-    :meth:`~harness.filters.local.BandPoisson.gram_reference`.
+    ``da = |a_i - a_j|``, ``sa = a_i + a_j`` (likewise ``b``). Each entry is computed
+    on its own, so the result does not depend on the thread count. The numpy statement
+    is :meth:`~harness.filters.local.BandPoisson.gram_reference`.
     """
     k = a.size
-    for i in range(k):
+    for i in numba.prange(k):
+        ai, bi, wxi, wyi = a[i], b[i], wx[i], wy[i]
         for j in range(i, k):
-            da = abs(a[i] - a[j])
-            sa = a[i] + a[j]
-            db = abs(b[i] - b[j])
-            sb = b[i] + b[j]
+            da = abs(ai - a[j])
+            sa = ai + a[j]
+            db = abs(bi - b[j])
+            sb = bi + b[j]
             gx = ex[db, da] + ex[sb, da] - ex[db, sa] - ex[sb, sa]
             gy = ey[db, da] - ey[sb, da] + ey[db, sa] - ey[sb, sa]
-            v = wx[i] * wx[j] * gx + wy[i] * wy[j] * gy
-            out[i, j] = v
-            out[j, i] = v
+            out[i, j] = wxi * wx[j] * gx + wyi * wy[j] * gy
+
+
+band_gram = numba.njit(cache=True, nogil=True, parallel=True)(_band_gram)
+band_gram_serial = numba.njit(cache=True, nogil=True)(_band_gram)

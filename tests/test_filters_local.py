@@ -183,6 +183,41 @@ def test_band_poisson_is_the_galerkin_solve_of_the_dense_operator(shape, rng):
     np.testing.assert_allclose(bp.solve(const, b), grid_solve, atol=1e-10 * scale)
 
 
+def test_band_gram_does_not_depend_on_thread_count(rng):
+    """The parallel Gram kernel with 1 and 2 threads and its serial build write the
+    same bits in the upper triangle (each entry is computed on its own)."""
+    import numba
+
+    from harness import kernels
+    from harness.filters.common import BandLimit
+    from harness.filters.local import BandPoisson
+
+    g = Grid.square(64)
+    bp = BandPoisson(g, BandLimit(g, 2.5 / 0.04))
+    c = np.exp(rng.normal(size=2 * g.size))
+    ex, ey = bp._extended(c[: g.size]), bp._extended(c[g.size :])
+    args = (ex, ey, bp.a, bp.b, bp._wx, bp._wy)
+    k = bp.modes
+    upper = np.triu(np.ones((k, k), dtype=bool))
+    results = []
+    before = numba.get_num_threads()
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            out = np.zeros((k, k))
+            kernels.band_gram(*args, out)
+            results.append(out[upper])
+    finally:
+        numba.set_num_threads(before)
+    serial = np.zeros((k, k))
+    kernels.band_gram_serial(*args, serial)
+    assert np.array_equal(results[0], results[1])
+    assert np.array_equal(results[0], serial[upper])
+    np.testing.assert_allclose(
+        results[0], bp.gram_reference(c)[upper], rtol=0, atol=1e-13 * np.abs(results[0]).max()
+    )
+
+
 def test_fine_grid_filters_solve_the_gradient_update_in_the_band():
     """Above 1024 cells with a band limit the filters use the band solve; below, or
     with every mode kept, the grid solve."""

@@ -273,16 +273,21 @@ class BandPoisson:
         e[g.ny + 1 :, :] = -e[g.ny - 1 : 0 : -1, :]
         return e
 
-    def gram(self, c: np.ndarray) -> np.ndarray:
-        """``B^T G^T diag(c) G B`` (``K x K``) for gradient-grid weights ``c`` (2M),
-        compiled (:func:`harness.kernels.band_gram`; :meth:`gram_reference` is the
-        numpy statement).
-        """
+    def _upper(self, c: np.ndarray) -> np.ndarray:
+        """The upper triangle of :meth:`gram` (strict lower triangle undefined)."""
         m, k = self.grid.size, self.modes
         out = np.empty((k, k))
         ex, ey = self._extended(c[:m]), self._extended(c[m:])
         band_gram(ex, ey, self.a, self.b, self._wx, self._wy, out)
         return out
+
+    def gram(self, c: np.ndarray) -> np.ndarray:
+        """``B^T G^T diag(c) G B`` (``K x K``) for gradient-grid weights ``c`` (2M),
+        compiled (:func:`harness.kernels.band_gram`, upper triangle, mirrored here;
+        :meth:`gram_reference` is the numpy statement).
+        """
+        upper = np.triu(self._upper(c))
+        return upper + np.triu(upper, 1).T
 
     def gram_reference(self, c: np.ndarray) -> np.ndarray:
         """:meth:`gram` by gathers of the extended transforms (numpy)."""
@@ -311,7 +316,15 @@ class BandPoisson:
         """``B a`` with ``(B^T G^T diag(c) G B) a = B^T b``: zero mean, in the band."""
         g = self.grid
         rhs = sfft.dctn(b.reshape(g.shape), type=2, norm="ortho")[self.b, self.a]
-        coef = sla.cho_solve(sla.cho_factor(self.gram(c), check_finite=False), rhs)
+        # The row-major upper triangle is the column-major lower one: LAPACK's Cholesky
+        # (potrf) and its solve (potrs) read it in place, without a copy or mirroring.
+        lower = self._upper(c).T
+        factor, info = sla.lapack.dpotrf(lower, lower=1, clean=0, overwrite_a=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"band Gram matrix not positive definite ({info})")
+        coef, info = sla.lapack.dpotrs(factor, rhs, lower=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"band solve failed ({info})")
         full = np.zeros(g.shape)
         full[self.b, self.a] = coef
         return sfft.idctn(full, type=2, norm="ortho").ravel()
