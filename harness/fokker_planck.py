@@ -346,10 +346,10 @@ def jacobi_solve(
 def red_black_solve(
     a: sp.csr_matrix, dt: float, rhs: np.ndarray, nx: int, tol: float = JACOBI_TOLERANCE
 ) -> np.ndarray | None:
-    """Solve ``(I - dt A) x = rhs`` (one column ``(M,)``, ``A`` a 5-point operator on a
-    grid of ``nx`` columns) by red-black Gauss-Seidel with the same final correction
-    as :func:`jacobi_solve`; ``None`` if it would need more than ``_MAX_JACOBI_TERMS``
-    sweeps.
+    """Solve ``(I - dt A) x = rhs`` (one column ``(M,)`` or several ``(M, c)``, swept
+    together; ``A`` a 5-point operator on a grid of ``nx`` columns) by red-black
+    Gauss-Seidel with the same final correction as :func:`jacobi_solve`; ``None`` if it
+    would need more than ``_MAX_JACOBI_TERMS`` sweeps.
 
     Derivation. With ``I - dt A = D - N`` as in :func:`jacobi_solve` (``D > 0``
     diagonal, ``N >= 0``), a red-black sweep is the Gauss-Seidel step of the regular
@@ -386,9 +386,9 @@ def implicit_solve(
 
     Truncated Neumann series ``sum_k (dt A)^k rhs`` when ``rho = dt ||A||_1`` allows
     at most ``_MAX_SERIES_TERMS`` terms for a remainder below ``1e-15 ||rhs||_1``
-    (see :meth:`FokkerPlanck.step`), else, column by column, red-black Gauss-Seidel
+    (see :meth:`FokkerPlanck.step`), else red-black Gauss-Seidel on all columns at once
     (:func:`red_black_solve`) when the grid's ``nx`` is given, the Jacobi-split series
-    (:func:`jacobi_solve`) otherwise; sparse LU when either would need more than
+    (:func:`jacobi_solve`) column by column otherwise; sparse LU when either would need more than
     ``_MAX_JACOBI_TERMS`` sweeps. No checks: estimates propagated by the filters may be
     negative.
     """
@@ -402,15 +402,20 @@ def implicit_solve(
             total += term
         return total
     a = a.tocsr()
-    cols = [rhs] if rhs.ndim == 1 else [rhs[:, c] for c in range(rhs.shape[1])]
-    solved: list[np.ndarray] = []
-    for col in cols:
-        x = jacobi_solve(a, dt, col) if nx is None else red_black_solve(a, dt, col, nx)
-        if x is None:
-            break
-        solved.append(x)
+    if nx is not None:  # all columns in one set of sweeps
+        x = red_black_solve(a, dt, rhs, nx)
+        if x is not None:
+            return x
     else:
-        return solved[0] if rhs.ndim == 1 else np.column_stack(solved)
+        cols = [rhs] if rhs.ndim == 1 else [rhs[:, c] for c in range(rhs.shape[1])]
+        solved: list[np.ndarray] = []
+        for col in cols:
+            x = jacobi_solve(a, dt, col)
+            if x is None:
+                break
+            solved.append(x)
+        else:
+            return solved[0] if rhs.ndim == 1 else np.column_stack(solved)
     system = (sp.identity(a.shape[0], format="csr") - dt * a).tocsc()
     return spla.splu(system).solve(rhs)
 

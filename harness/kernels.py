@@ -309,30 +309,34 @@ def _red_black(
     tol: float,
     max_iter: int,
 ) -> tuple[np.ndarray, int, float]:
-    """Solve ``(I - dt A) x = rhs`` by red-black Gauss-Seidel sweeps from ``x = 0``,
-    then add the last residual (see :func:`harness.fokker_planck.red_black_solve`).
+    """Solve ``(I - dt A) X = RHS`` for the ``c`` columns of ``rhs`` ``(M, c)`` by
+    red-black Gauss-Seidel sweeps from ``X = 0``, then add the last residual (see
+    :func:`harness.fokker_planck.red_black_solve`).
 
     ``A`` is a 5-point operator on a grid of ``nx`` columns (row ``k`` is cell ``(k //
     nx, k % nx)``; red cells have even ``row + col``), given by its CSR arrays, ``D =
-    diag(I - dt A)`` and ``N = dt (A - diag A)``. A sweep updates the red cells from the
-    black ones, ``x_i <- (rhs_i + sum_j N_ij x_j) / D_i``, then the black cells from the
-    new red ones. After a sweep the residual ``r = rhs - (D - N) x`` is zero on black
-    cells; on red cells it is ``s_i - D_i x_i`` with ``s_i`` the sum the next red update
-    computes anyway, so each sweep is one pass over the matrix. At the first sweep ``K``
-    with ``||r||_1 <= tol ||rhs||_1`` the red cells' new values are taken back (``x_i =
-    (s_i - r_i) / D_i``, to round-off) and ``(x_K + r, K, ||r||_1 / ||rhs||_1)`` is
-    returned; after ``max_iter`` sweeps (at least one) the iterate ``x_K`` itself with
-    its residual norm. An operator that is not 5-point on rows of ``nx`` cells (a
-    coupling other than the four grid neighbours, or ``nx`` not dividing the size)
-    returns ``(0, -1, inf)``: the colouring would be wrong. Each
-    phase is one parallel pass over the grid's rows (a cell's neighbours have the
+    diag(I - dt A)`` and ``N = dt (A - diag A)``. A first pass turns the CSR rows into
+    the stencil (``D`` and the four neighbour weights of ``N``, zero across walls), so a
+    sweep reads fixed offsets. A sweep updates the red cells from the black ones, ``x_i
+    <- (rhs_i + sum_j N_ij x_j) / D_i``, then the black cells from the new red ones.
+    After a sweep the residual ``r = rhs - (D - N) x`` is zero on black cells; on red
+    cells it is ``s_i - D_i x_i`` with ``s_i`` the sum the next red update computes
+    anyway, so each sweep is one pass over the stencil. Sweeps stop at the first ``K``
+    at which every column has ``||r||_1 <= tol ||rhs||_1`` (columns are swept together,
+    sharing the stencil's reads); the red cells' new values are taken back (``x_i =
+    (s_i - r_i) / D_i``, to round-off) and ``(X_K + R, K, max_c ||r_c||_1 /
+    ||rhs_c||_1)`` is returned; after ``max_iter`` sweeps (at least one) the iterate
+    ``X_K`` itself with its largest relative residual. An operator that is not 5-point
+    on rows of ``nx`` cells (a coupling other than the four grid neighbours, or ``nx``
+    not dividing the size) returns ``(0, -1, inf)``: the colouring would be wrong.
+    Each phase is one parallel pass over the grid's rows (a cell's neighbours have the
     other colour, so the cells of one colour are independent), and every sum has a
     fixed order, so the result does not depend on the number of threads.
     """
-    m = rhs.size
+    m, c = rhs.shape
     ny = m // nx
     diag = np.empty(m)
-    off = np.empty(data.size)
+    w = np.zeros((m, 4))  # weights of the neighbours at -1, +1, -nx, +nx
     foreign = np.zeros(ny, dtype=np.int64)  # couplings that are not grid neighbours
     for row in numba.prange(ny):
         for col in range(nx):
@@ -342,54 +346,75 @@ def _red_black(
                 step = indices[jj] - i
                 if step == 0:
                     a_ii += data[jj]
-                    off[jj] = 0.0
-                    continue
-                off[jj] = dt * data[jj]
-                beside = (step == 1 and col < nx - 1) or (step == -1 and col > 0)
-                if not (beside or step == nx or step == -nx) and data[jj] != 0.0:
+                elif step == -1 and col > 0:
+                    w[i, 0] += dt * data[jj]
+                elif step == 1 and col < nx - 1:
+                    w[i, 1] += dt * data[jj]
+                elif step == -nx:
+                    w[i, 2] += dt * data[jj]
+                elif step == nx:
+                    w[i, 3] += dt * data[jj]
+                elif data[jj] != 0.0:
                     foreign[row] += 1
             diag[i] = 1.0 - dt * a_ii
-    x = np.zeros(m)
-    r = np.zeros(m)
+    x = np.zeros((m, c))
+    r = np.zeros((m, c))
     if ny * nx != m or foreign.sum() > 0:
         return x, -1, np.inf  # not a 5-point operator on rows of nx cells
-    norm_b = 0.0
+    norm_b = np.zeros(c)
     for i in range(m):
-        norm_b += abs(rhs[i])
-    if norm_b == 0.0:
-        return x, 0, 0.0
-    partial = np.empty(ny)
+        for k in range(c):
+            norm_b[k] += abs(rhs[i, k])
+    for k in range(c):
+        if norm_b[k] == 0.0:
+            norm_b[k] = 1.0  # a zero column stays zero, with zero residual
+    partial = np.empty((ny, c))
     sweeps = 0
     res = np.inf
     while True:
         # red cells: the residual of the current iterate, then the update
         for row in numba.prange(ny):
-            acc = 0.0
-            for col in range(row % 2, nx, 2):
-                i = row * nx + col
-                s = rhs[i]
-                for jj in range(indptr[i], indptr[i + 1]):
-                    s += off[jj] * x[indices[jj]]
-                res_i = s - diag[i] * x[i]
-                r[i] = res_i
-                acc += abs(res_i)
-                x[i] = s / diag[i]
-            partial[row] = acc
+            for k in range(c):  # a column at a time: the row's stencil stays in cache
+                acc = 0.0
+                for col in range(row % 2, nx, 2):
+                    i = row * nx + col
+                    # out-of-grid neighbours have weight 0: read cell i instead
+                    iw = i - 1 if col > 0 else i
+                    ie = i + 1 if col < nx - 1 else i
+                    is_ = i - nx if row > 0 else i
+                    in_ = i + nx if row < ny - 1 else i
+                    s = (
+                        rhs[i, k] + w[i, 0] * x[iw, k] + w[i, 1] * x[ie, k]
+                        + w[i, 2] * x[is_, k] + w[i, 3] * x[in_, k]
+                    )  # fmt: skip
+                    res_i = s - diag[i] * x[i, k]
+                    r[i, k] = res_i
+                    acc += abs(res_i)
+                    x[i, k] = s / diag[i]
+                partial[row, k] = acc
         if sweeps > 0:  # before the first sweep the black cells' residual is rhs
             res = 0.0
-            for row in range(ny):
-                res += partial[row]
-            res /= norm_b
+            for k in range(c):
+                col_res = 0.0
+                for row in range(ny):
+                    col_res += partial[row, k]
+                res = max(res, col_res / norm_b[k])
             if res <= tol or sweeps >= max(max_iter, 1):
                 break
         # black cells from the new red ones
         for row in numba.prange(ny):
-            for col in range((row + 1) % 2, nx, 2):
-                i = row * nx + col
-                s = rhs[i]
-                for jj in range(indptr[i], indptr[i + 1]):
-                    s += off[jj] * x[indices[jj]]
-                x[i] = s / diag[i]
+            for k in range(c):
+                for col in range((row + 1) % 2, nx, 2):
+                    i = row * nx + col
+                    iw = i - 1 if col > 0 else i
+                    ie = i + 1 if col < nx - 1 else i
+                    is_ = i - nx if row > 0 else i
+                    in_ = i + nx if row < ny - 1 else i
+                    s = (
+                        rhs[i, k] + w[i, 0] * x[iw, k] + w[i, 1] * x[ie, k]
+                        + w[i, 2] * x[is_, k] + w[i, 3] * x[in_, k]
+                    )  # fmt: skip
+                    x[i, k] = s / diag[i]
         sweeps += 1
     # back to the last full sweep on red cells, plus the residual when converged (the
     # returned norm is then that of the corrected vector's residual before correction)
@@ -397,7 +422,8 @@ def _red_black(
     for row in numba.prange(ny):
         for col in range(row % 2, nx, 2):
             i = row * nx + col
-            x[i] = (x[i] - r[i] / diag[i]) + add * r[i]
+            for k in range(c):
+                x[i, k] = (x[i, k] - r[i, k] / diag[i]) + add * r[i, k]
     return x, sweeps, res
 
 
@@ -415,11 +441,14 @@ def red_black(
     tol: float,
     max_iter: int,
 ) -> tuple[np.ndarray, int, float]:
-    """Compiled red-black Gauss-Seidel (see :func:`_red_black`), parallel from
-    ``PARALLEL_MIN_CELLS`` cells on; both builds give the same bits.
+    """Compiled red-black Gauss-Seidel (see :func:`_red_black`) for ``rhs`` of shape
+    ``(M,)`` or ``(M, c)`` (the result has the same shape), parallel from
+    ``PARALLEL_MIN_CELLS`` values on; both builds give the same bits.
     """
+    columns = rhs.reshape(rhs.shape[0], -1)
     kernel = _red_black_parallel if rhs.size >= PARALLEL_MIN_CELLS else _red_black_serial
-    return kernel(indptr, indices, data, dt, rhs, nx, tol, max_iter)
+    x, sweeps, res = kernel(indptr, indices, data, dt, columns, nx, tol, max_iter)
+    return x.reshape(rhs.shape), sweeps, res
 
 
 PARALLEL_MIN_CELLS = 1 << 16
