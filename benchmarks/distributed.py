@@ -184,7 +184,7 @@ def bench_app(quick: bool) -> bool:
     print("Decentralised loop as the app builds it (n = 30, estimator=distributed):")
     ok = True
     cases = [(1024, 0.1, "grid", 200, TARGET_MS), (4096, 0.05, "grid", 20, None)]
-    cases.append((1024, 0.1, "filter", 1, TARGET_MS))
+    cases.append((1024, 0.1, "filter", 3, TARGET_MS))
     for n_robots, radius, gradient, steps, target in cases:
         if quick:
             steps = max(1, steps // 4)

@@ -211,6 +211,40 @@ def test_vectorised_filters_equal_one_local_filter_per_robot(rng):
             np.testing.assert_allclose(batch.q_hat[i], q_i.ravel(), atol=1e-9 * abs(q_i).max())
 
 
+def test_batched_poisson_matches_sparse_lu_per_robot_and_refuses_to_stop_early(rng):
+    """Each robot's weighted Poisson solve (rough weights spanning two decades, a
+    rectangular grid) equals a sparse LU of its own operator with cell 0 pinned,
+    shifted to zero mean; the Laplacian pseudo-inverse equals the dense one; too few
+    iterations raise instead of returning an unconverged update."""
+    from harness.distributed import BatchedPoisson
+    from harness.fokker_planck import NumericalError
+
+    g = Grid(14, 11, 0.0, 1.2, 0.0, 1.0)
+    n = 5
+    bp = BatchedPoisson(g, tol=1e-12)
+    gm = g.gradient_matrix.tocsr()
+    c = np.exp(rng.uniform(0.0, np.log(100.0), size=(n, 2 * g.size)))
+    b = rng.normal(size=(n, g.size))
+    b -= b.mean(axis=1, keepdims=True)  # the range of G^T
+    x = bp.solve(c, b)
+    for i in range(n):
+        op = (gm.T @ sp.diags(c[i]) @ gm).tolil()
+        op[0, :] = 0.0
+        op[:, 0] = 0.0
+        op[0, 0] = 1.0
+        rhs = b[i].copy()
+        rhs[0] = 0.0
+        ref = spla.splu(op.tocsc()).solve(rhs)
+        ref -= ref.mean()
+        np.testing.assert_allclose(x[i], ref, atol=1e-9 * np.abs(ref).max())
+    lap = (gm.T @ gm).toarray()
+    np.testing.assert_allclose(
+        bp.laplacian_pinv(b), b @ np.linalg.pinv(lap).T, atol=1e-10 * np.abs(b).max()
+    )
+    with pytest.raises(NumericalError, match="did not converge"):
+        bp.solve(c, b, maxiter=2)
+
+
 @pytest.mark.parametrize("gradient", ["filter", "grid"])
 def test_complete_graph_equals_the_centralised_filter(gradient):
     """Complete graph: eps = 1/N and W = 1 1^T / N, one round is exact consensus; every
