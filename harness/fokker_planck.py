@@ -344,12 +344,18 @@ def jacobi_solve(
 
 
 def red_black_solve(
-    a: sp.csr_matrix, dt: float, rhs: np.ndarray, nx: int, tol: float = JACOBI_TOLERANCE
+    a: sp.csr_matrix,
+    dt: float,
+    rhs: np.ndarray,
+    nx: int,
+    tol: float = JACOBI_TOLERANCE,
+    diag: np.ndarray | None = None,
 ) -> np.ndarray | None:
     """Solve ``(I - dt A) x = rhs`` (one column ``(M,)`` or several ``(M, c)``, swept
     together; ``A`` a 5-point operator on a grid of ``nx`` columns) by red-black
     Gauss-Seidel with the same final correction as :func:`jacobi_solve`; ``None`` if it
-    would need more than ``_MAX_JACOBI_TERMS`` sweeps.
+    would need more than ``_MAX_JACOBI_TERMS`` sweeps. ``diag`` may pass ``A``'s
+    diagonal when the caller has it.
 
     Derivation. With ``I - dt A = D - N`` as in :func:`jacobi_solve` (``D > 0``
     diagonal, ``N >= 0``), a red-black sweep is the Gauss-Seidel step of the regular
@@ -365,7 +371,7 @@ def red_black_solve(
     settings mid-run: 9 sweeps against 17 terms at n = 128, 14 against 26 at n = 256
     (``python -m benchmarks.numerics``). The reference is the sparse LU.
     """
-    o_max = float(np.max(-a.diagonal(), initial=0.0))
+    o_max = float(np.max(-(a.diagonal() if diag is None else diag), initial=0.0))
     q = dt * o_max / (1.0 + dt * o_max)
     bound = int(np.ceil(np.log(tol) / np.log(q))) if q > 0.0 else 1
     if bound > _MAX_JACOBI_TERMS:
@@ -392,7 +398,8 @@ def implicit_solve(
     ``_MAX_JACOBI_TERMS`` sweeps. No checks: estimates propagated by the filters may be
     negative.
     """
-    rho = dt * 2.0 * float(np.max(np.abs(a.diagonal()), initial=0.0))
+    diag = a.diagonal()
+    rho = dt * 2.0 * float(np.max(np.abs(diag), initial=0.0))
     terms = _series_terms(rho)
     if terms <= _MAX_SERIES_TERMS:
         term, total = rhs, rhs.copy()
@@ -403,7 +410,7 @@ def implicit_solve(
         return total
     a = a.tocsr()
     if nx is not None:  # all columns in one set of sweeps
-        x = red_black_solve(a, dt, rhs, nx)
+        x = red_black_solve(a, dt, rhs, nx, diag=diag)
         if x is not None:
             return x
     else:

@@ -4,7 +4,12 @@ import pytest
 from harness.densities import GaussianMixture
 from harness.filters.common import FilterSettings, Integrator, MeasurementModel
 from harness.filters.compare import compare_filters
-from harness.filters.local import LocalFilters, WeightedPoisson, squared_transition
+from harness.filters.local import (
+    LocalFilters,
+    WeightedPoisson,
+    squared_transition,
+    squared_transition_reference,
+)
 from harness.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
@@ -17,6 +22,10 @@ def test_squared_transition_is_the_diagonal_of_the_congruence(rng):
     d = rng.random(g.size)
     f1 = np.eye(g.size) + 0.02 * a.toarray()
     np.testing.assert_allclose(squared_transition(a, 0.02, d), np.diag(f1 @ np.diag(d) @ f1.T))
+    cols = rng.random((g.size, 3))  # several columns: the compiled pass and numpy agree
+    np.testing.assert_allclose(
+        squared_transition(a, 0.02, cols), squared_transition_reference(a, 0.02, cols), rtol=1e-14
+    )
 
 
 def test_weighted_poisson_solves_the_normal_equations(rng):

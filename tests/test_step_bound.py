@@ -34,6 +34,35 @@ def test_smoother_multiplies_cosine_modes_by_the_gaussian_transfer(n, h, i, j):
     np.testing.assert_allclose(grad, factor * np.stack([gx, gy]), atol=1e-7 * max(k, 1))
 
 
+@pytest.mark.parametrize("shape", [(64, 64), (128, 128), (100, 80)])
+def test_smoother_transform_form_equals_the_kernel_matrices_on_fine_grids(shape, rng):
+    """Where the aliasing factor is below round-off the transforms (used there) and the
+    kernel matrices give the same field and gradient for a rough density."""
+    nx, ny = shape
+    g = Grid(nx, ny, 0.0, nx / 100 if nx != ny else 1.0, 0.0, ny / 100 if nx != ny else 1.0)
+    sm = Smoother(g, 0.04)
+    assert sm.spectral
+    p = rng.random(g.shape)
+    (a, ga), (b, gb) = sm.matrices(p), sm.transformed(p)
+    np.testing.assert_allclose(b, a, atol=1e-13 * np.abs(a).max())
+    np.testing.assert_allclose(gb, ga, atol=1e-12 * np.abs(ga).max())
+
+
+def test_smoother_forms_differ_on_coarse_grids_by_the_alias_of_the_sampling():
+    """On the paper's grid the matrices see the mode next to Nyquist through its alias
+    about the sampling wavenumber 2 pi / dx (Poisson summation); the transforms do not:
+    the difference is the alias's Gaussian factor, which is why the matrices stay there."""
+    g = Grid.square(30)
+    sm = Smoother(g, 0.04)
+    assert not sm.spectral
+    a = g.nx - 1
+    mode = cosine(g, a, 0)
+    (m, _), (t, _) = sm.matrices(mode), sm.transformed(mode)
+    alias = transfer(np.array(2 * np.pi / g.dx - a * np.pi), 0.04)
+    np.testing.assert_allclose(t, transfer(np.array(a * np.pi), 0.04) * mode, atol=1e-12)
+    np.testing.assert_allclose(m - t, alias * mode, rtol=1e-3, atol=1e-9)
+
+
 def held_loop(grid, estimate, dt, mode, steps=30, eps=1e-6):
     """Amplitudes of ``mode`` in the paper's held loop about the uniform target."""
     target = Target.from_density(grid, Uniform())

@@ -87,14 +87,25 @@ from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
 from harness.fokker_planck import FokkerPlanck, implicit_solve
 from harness.grid import Grid
 from harness.kernels import band_gram
+from harness.kernels import squared_transition as compiled_squared_transition
 from harness.velocity import VelocityField
 
 
 def squared_transition(a: sp.csr_matrix, dt: float, d: np.ndarray) -> np.ndarray:
     """``(F1 o F1) d`` with ``F1 = I + dt A``: the diagonal of ``F1 diag(d) F1^T``.
 
-    ``d`` may hold several columns.
+    ``d`` may hold several columns. Compiled, one pass over ``A``
+    (:func:`harness.kernels.squared_transition`); :func:`squared_transition_reference`
+    is the numpy statement.
     """
+    a = a.tocsr()
+    cols = np.ascontiguousarray(d, dtype=float).reshape(d.shape[0], -1)
+    out = compiled_squared_transition(a.indptr, a.indices, a.data, float(dt), cols)
+    return out.reshape(d.shape)
+
+
+def squared_transition_reference(a: sp.csr_matrix, dt: float, d: np.ndarray) -> np.ndarray:
+    """Numpy statement of :func:`squared_transition`."""
     sq = a.copy()
     sq.data = (dt * sq.data) ** 2
     diag = a.diagonal()
