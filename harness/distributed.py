@@ -832,18 +832,6 @@ def _grad_t_row(g, nx, ny, dx, dy, out):  # pragma: no cover
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _weighted_laplacian(delta, c, nx, ny, dx, dy, out):  # pragma: no cover
-    """``out_i = G^T diag(c_i) G delta_i`` per robot row."""
-    n, m = delta.shape
-    for i in numba.prange(n):
-        g = np.empty(2 * m)
-        _grad_row(delta[i], nx, ny, dx, dy, g)
-        for r in range(2 * m):
-            g[r] *= c[i, r]
-        _grad_t_row(g, nx, ny, dx, dy, out[i])
-
-
-@numba.njit(cache=True, parallel=True, nogil=True)
 def _gradient_rhs(xg, yg, w, nx, ny, dx, dy, out):  # pragma: no cover
     """``out_i = G^T (w_i o (y_g,i - G x_g,i))``: the weighted-Poisson right-hand side."""
     n, m = xg.shape
@@ -1140,23 +1128,79 @@ class DynamicAverageConsensus:
 # per-robot filters
 
 
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _weighted_laplacian_columns(d, c, nx, ny, dx, dy, g, out):  # pragma: no cover
+    """``out[:, k] = G^T diag(c[:, k]) G d[:, k]`` for every robot ``k`` (columns), cells
+    in rows (robots last, so the inner loops run along contiguous robots). ``g`` is a
+    ``(2M, N)`` work array. ``G`` is :meth:`harness.grid.Grid.gradient` (central
+    differences, reflecting ghosts: the neighbour beyond a wall is the cell itself);
+    ``G^T`` is applied as a gather, so rows run in parallel without races and every
+    value is summed in a fixed order.
+    """
+    m = nx * ny
+    n = d.shape[1]
+    for j in numba.prange(ny):
+        jm = max(j - 1, 0)
+        jp = min(j + 1, ny - 1)
+        for i in range(nx):
+            im = max(i - 1, 0)
+            ip = min(i + 1, nx - 1)
+            cell = j * nx + i
+            for k in range(n):
+                g[cell, k] = c[cell, k] * (d[j * nx + ip, k] - d[j * nx + im, k]) / (2.0 * dx)
+                g[m + cell, k] = (
+                    c[m + cell, k] * (d[jp * nx + i, k] - d[jm * nx + i, k]) / (2.0 * dy)
+                )
+    for j in numba.prange(ny):
+        for i in range(nx):
+            cell = j * nx + i
+            for k in range(n):
+                out[cell, k] = 0.0
+            # x: cell i is the right neighbour of i - 1 (and of itself at the right
+            # wall), the left neighbour of i + 1 (and of itself at the left wall)
+            if i >= 1:
+                for k in range(n):
+                    out[cell, k] += g[cell - 1, k] / (2.0 * dx)
+            if i == nx - 1:
+                for k in range(n):
+                    out[cell, k] += g[cell, k] / (2.0 * dx)
+            if i <= nx - 2:
+                for k in range(n):
+                    out[cell, k] -= g[cell + 1, k] / (2.0 * dx)
+            if i == 0:
+                for k in range(n):
+                    out[cell, k] -= g[cell, k] / (2.0 * dx)
+            if j >= 1:
+                for k in range(n):
+                    out[cell, k] += g[m + cell - nx, k] / (2.0 * dy)
+            if j == ny - 1:
+                for k in range(n):
+                    out[cell, k] += g[m + cell, k] / (2.0 * dy)
+            if j <= ny - 2:
+                for k in range(n):
+                    out[cell, k] -= g[m + cell + nx, k] / (2.0 * dy)
+            if j == 0:
+                for k in range(n):
+                    out[cell, k] -= g[m + cell, k] / (2.0 * dy)
+
+
 class BatchedPoisson:
     """Solves ``(G^T diag(c_i) G) delta_i = b_i``, ``sum delta_i = 0``, for every robot
-    ``i`` (rows are robots) by conjugate gradients, each robot preconditioned with
-    ``S_i^{-1/2} (G^T G)^+ S_i^{-1/2}``, ``S_i`` the local mean of ``c_i`` that scales
-    the operator's diagonal (:meth:`diagonal_weights`).
+    ``i`` by conjugate gradients, each robot preconditioned with ``S_i^{-1/2} (G^T G)^+
+    S_i^{-1/2}``, ``S_i`` the local mean of ``c_i`` that scales the operator's diagonal
+    (:meth:`diagonal_weights`).
 
     ``G^T G`` is diagonal in the orthonormal DCT-II basis, so its pseudo-inverse is two
     transforms; for ``N`` robots on a small grid they are dense products with the
-    ``n x n`` DCT matrices over all robots at once (robots last: each product is one
-    large matrix product, about four times faster than ``N`` small fast transforms at
-    ``n = 30``). The scaling takes out each robot's own range of information (a factor
-    of about 25 across the domain mid-run); what is left, the variation of ``c_i``
-    between the two components and within a cell's neighbourhood, sets the iteration
-    count (about 35 for a relative residual of ``1e-10`` mid-run at paper scale, ``python
-    -m benchmarks.distributed --gradient-filter``). A robot stops when its residual is
-    below ``tol`` relative to ``b_i``; the arithmetic per robot does not depend on the
-    other robots, except for when the batch stops.
+    ``n x n`` DCT matrices over all robots at once. The iteration keeps cells in rows and
+    robots in columns, so each product is one large matrix product and the operator a
+    compiled pass along contiguous robots (:func:`_weighted_laplacian_columns`). The
+    scaling takes out each robot's own range of information (a factor of about 25
+    across the domain mid-run); what is left sets the iteration count (about 35 for a
+    relative residual of ``1e-10`` mid-run at paper scale, ``python -m
+    benchmarks.distributed --gradient-filter``). A robot stops when its residual is
+    below ``tol`` relative to ``b_i``; its arithmetic does not depend on the other
+    robots.
     """
 
     def __init__(self, grid: Grid, tol: float = 1e-10) -> None:
@@ -1176,7 +1220,7 @@ class BatchedPoisson:
         # contiguous transposes: the batched products fall back to slow loops otherwise
         self._cx_t = np.ascontiguousarray(self._cx.T)
         self._cy_t = np.ascontiguousarray(self._cy.T)
-        self._work: tuple[np.ndarray, np.ndarray] | None = None
+        self._work: tuple[np.ndarray, ...] | None = None
         self.iterations = 0
 
     def diagonal_weights(self, c: np.ndarray) -> np.ndarray:
@@ -1185,7 +1229,7 @@ class BatchedPoisson:
         the left and right neighbours, ``c_y`` of the lower and upper ones; a wall cell
         uses itself for the missing one), so that ``S_i`` times the unweighted diagonal
         is the weighted one in the interior. (The plain per-cell mean of ``c_i`` needs
-        about 50 rather than 35 iterations mid-run at paper scale.)
+        about 50 rather than 35 iterations mid-run at paper scale.) Rows are robots.
         """
         g = self.grid
         n = c.shape[0]
@@ -1200,75 +1244,78 @@ class BatchedPoisson:
         s[:, -1, :] += cy[:, -2, :] + cy[:, -1, :]
         return 0.25 * s.reshape(n, g.size)
 
-    def _buffers(self, n: int) -> tuple[np.ndarray, np.ndarray]:
-        """Two ``M x n`` work arrays for :meth:`laplacian_pinv`, kept between calls."""
+    def _buffers(self, n: int) -> tuple[np.ndarray, ...]:
+        """Work arrays for ``n`` robots (cells by robots), kept between calls."""
+        m = self.grid.size
         if self._work is None or self._work[0].shape[1] != n:
-            m = self.grid.size
-            self._work = (np.empty((m, n)), np.empty((m, n)))
+            self._work = (np.empty((m, n)), np.empty((m, n)), np.empty((2 * m, n)))
         return self._work
 
-    def laplacian_pinv(self, r: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """``(G^T G)^+ r_i`` for every row of ``r`` ``(N, M)`` (dense DCT products).
-
-        Written to ``out`` when given.
+    def pinv_columns(self, r: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """``out[:, k] = (G^T G)^+ r[:, k]`` for cells by robots ``(M, N)`` (four dense
+        products with the DCT matrices; ``out`` may be ``r``).
         """
         g = self.grid
-        n = r.shape[0]
-        a, b = self._buffers(n)
-        np.copyto(a, r.T)  # cells by robots
-        np.matmul(self._cy, a.reshape(g.ny, g.nx * n), out=b.reshape(g.ny, g.nx * n))  # y
-        coef = a.reshape(g.ny, g.nx, n)
+        n = r.shape[1]
+        _, b, _ = self._buffers(n)
+        np.matmul(self._cy, r.reshape(g.ny, g.nx * n), out=b.reshape(g.ny, g.nx * n))  # y
+        coef = out.reshape(g.ny, g.nx, n)
         np.matmul(self._cx, b.reshape(g.ny, g.nx, n), out=coef)  # x, per row of modes
         coef *= self._inv
         np.matmul(self._cx_t, coef, out=b.reshape(g.ny, g.nx, n))
-        np.matmul(self._cy_t, b.reshape(g.ny, g.nx * n), out=a.reshape(g.ny, g.nx * n))
-        if out is None:
-            out = np.empty_like(r)
-        np.copyto(out, a.T)
+        np.matmul(self._cy_t, b.reshape(g.ny, g.nx * n), out=out.reshape(g.ny, g.nx * n))
         return out
 
-    def _op(self, d: np.ndarray, c: np.ndarray) -> np.ndarray:
-        g = self.grid
-        out = np.empty_like(d)
-        _weighted_laplacian(d, c, g.nx, g.ny, g.dx, g.dy, out)
-        return out
+    def laplacian_pinv(self, r: np.ndarray) -> np.ndarray:
+        """``(G^T G)^+ r_i`` for every row of ``r`` ``(N, M)`` (robots in rows)."""
+        cols = np.ascontiguousarray(r.T, dtype=float)
+        return np.ascontiguousarray(self.pinv_columns(cols, cols).T)
 
     def solve(self, c: np.ndarray, b: np.ndarray, maxiter: int = 500) -> np.ndarray:
-        """Zero-mean solutions ``(N, M)`` for information ``c`` ``(N, 2M)``, ``b`` ``(N, M)``.
+        """Zero-mean solutions ``(N, M)`` for information ``c`` ``(N, 2M)``, ``b`` ``(N, M)``
+        (robots in rows; the iteration runs on the transposes).
 
         Raises:
             NumericalError: A robot's residual is not below ``tol`` after ``maxiter``
                 iterations (the estimate would not be the filter's).
         """
-        scale = 1.0 / np.sqrt(self.diagonal_weights(c))
+        g = self.grid
+        n = b.shape[0]
+        ct = np.ascontiguousarray(c.T)
+        scale = np.ascontiguousarray((1.0 / np.sqrt(self.diagonal_weights(c))).T)
+        r = np.array(b.T, dtype=float, order="C")
+        _, _, work = self._buffers(n)
+        z, ad = np.empty_like(r), np.empty_like(r)
 
-        def precondition(r: np.ndarray) -> np.ndarray:
-            return scale * self.laplacian_pinv(scale * r)
+        def precondition() -> None:
+            np.multiply(scale, r, out=z)
+            self.pinv_columns(z, z)
+            np.multiply(z, scale, out=z)
 
-        x = np.zeros_like(b)
-        r = b.copy()
-        b_norm = np.linalg.norm(b, axis=1)
+        x = np.zeros_like(r)
+        b_norm = np.sqrt(np.einsum("ij,ij->j", r, r))
         active = b_norm > 0.0
-        z = precondition(r)
+        precondition()
         d = z.copy()
-        rz = np.einsum("ij,ij->i", r, z)
+        rz = np.einsum("ij,ij->j", r, z)
         its = 0
         while active.any() and its < maxiter:
             its += 1
-            ad = self._op(d, c)
-            curv = np.einsum("ij,ij->i", d, ad)
+            _weighted_laplacian_columns(d, ct, g.nx, g.ny, g.dx, g.dy, work, ad)
+            curv = np.einsum("ij,ij->j", d, ad)
             # a robot whose preconditioned residual vanished has converged to round-off
             active &= (rz > 0.0) & (curv > 0.0)
             step = np.where(active, rz / np.where(active, curv, 1.0), 0.0)
-            x += step[:, None] * d
-            r -= step[:, None] * ad
-            active &= np.linalg.norm(r, axis=1) > self.tol * b_norm
+            x += step * d
+            r -= step * ad
+            active &= np.sqrt(np.einsum("ij,ij->j", r, r)) > self.tol * b_norm
             if not active.any():
                 break
-            z = precondition(r)
-            rz_new = np.einsum("ij,ij->i", r, z)
+            precondition()
+            rz_new = np.einsum("ij,ij->j", r, z)
             beta = np.where(active, rz_new / np.where(rz > 0, rz, 1.0), 0.0)
-            d = z + beta[:, None] * d
+            d *= beta
+            d += z
             rz = rz_new
         self.iterations = its
         if active.any():
@@ -1276,7 +1323,8 @@ class BatchedPoisson:
                 f"gradient update: {int(active.sum())} robots' Poisson solves did not "
                 f"converge in {maxiter} iterations"
             )
-        return x - x.mean(axis=1, keepdims=True)
+        x -= x.mean(axis=0)
+        return np.ascontiguousarray(x.T)
 
 
 _ROBOT_MAX_SWEEPS = 60
