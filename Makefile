@@ -59,8 +59,8 @@ reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write it
 	@echo "figures:"; ls -1 figures/* figures/meanfield/*
 
 STUDIES := iss_gain conv_grid conv_sigma conv_alpha agents_n debias_n
-# run alone (make sweep-NAME), each about half an hour on 2 cores, beyond the sweeps' 30-minute
-# budget: conv_grid_agents (agent loop on grids up to 256, 26 min) and distributed_r
+# run alone (make sweep-NAME), each a quarter to half an hour on 2 cores, beyond the sweeps' 30-minute
+# budget: conv_grid_agents (agent loop on grids up to 256, 15.5 min) and distributed_r
 # (decentralised loop against the communication radius, 28 min)
 EXTRA_STUDIES := conv_grid_agents distributed_r
 
