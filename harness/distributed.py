@@ -1281,9 +1281,15 @@ class BatchedPoisson:
         """
         g = self.grid
         n = b.shape[0]
+        top = np.max(np.abs(b), axis=1)
+        if not np.isfinite(top).all():
+            raise NumericalError("gradient update: a robot's right-hand side is not finite")
+        # each robot's right-hand side divided by a power of two near its largest entry:
+        # exact, and its inner products cannot overflow
+        unit = np.where(top > 0.0, np.ldexp(1.0, np.frexp(top)[1]), 1.0)
         ct = np.ascontiguousarray(c.T)
         scale = np.ascontiguousarray((1.0 / np.sqrt(self.diagonal_weights(c))).T)
-        r = np.array(b.T, dtype=float, order="C")
+        r = np.array(b.T / unit, dtype=float, order="C")
         _, _, work = self._buffers(n)
         z, ad = np.empty_like(r), np.empty_like(r)
 
@@ -1324,6 +1330,7 @@ class BatchedPoisson:
                 f"converge in {maxiter} iterations"
             )
         x -= x.mean(axis=0)
+        x *= unit
         return np.ascontiguousarray(x.T)
 
 

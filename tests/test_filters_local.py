@@ -28,6 +28,29 @@ def test_squared_transition_is_the_diagonal_of_the_congruence(rng):
     )
 
 
+def test_weighted_poisson_is_exact_under_huge_right_hand_sides(rng):
+    """A right-hand side of size 1e200 (its squared norm overflows) gives the small
+    problem's solution times the same factor, without a warning; a non-finite one is
+    refused (the run then ends as diverged, with the reason)."""
+    import warnings
+
+    from harness.fokker_planck import NumericalError
+
+    g = Grid(9, 7, 0.0, 1.0, 0.0, 0.8)
+    gm = g.gradient_matrix.toarray()
+    c = np.exp(rng.normal(size=2 * g.size))
+    b = gm.T @ (c * rng.normal(size=2 * g.size))
+    small = WeightedPoisson(g).solve(c, b)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        huge = WeightedPoisson(g).solve(c, b * 2.0**660)
+    assert np.array_equal(huge, small * 2.0**660)
+    bad = b.copy()
+    bad[3] = np.inf
+    with pytest.raises(NumericalError, match="not finite"):
+        WeightedPoisson(g).solve(c, bad)
+
+
 def test_weighted_poisson_solves_the_normal_equations(rng):
     g = Grid(9, 7, 0.0, 1.0, 0.0, 0.8)
     solver = WeightedPoisson(g)

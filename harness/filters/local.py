@@ -84,7 +84,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
-from harness.fokker_planck import FokkerPlanck, implicit_solve
+from harness.fokker_planck import FokkerPlanck, NumericalError, implicit_solve
 from harness.grid import Grid
 from harness.kernels import band_gram
 from harness.kernels import squared_transition as compiled_squared_transition
@@ -182,7 +182,21 @@ class WeightedPoisson:
         return apply
 
     def solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
-        """The zero-mean solution of ``G^T diag(c) G delta = b``."""
+        """The zero-mean solution of ``G^T diag(c) G delta = b``.
+
+        The iteration runs on ``b`` divided by a power of two near its largest entry
+        (:func:`power_of_two_scale`; exact, so the result is the same bits), so that its
+        inner products do not overflow for right-hand sides above about 1e154.
+
+        Raises:
+            NumericalError: ``b`` is not finite.
+        """
+        unit = power_of_two_scale(b)
+        if unit == 0.0:
+            return np.zeros_like(b)
+        return unit * self._solve(c, b / unit)
+
+    def _solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
         m = self.grid.size
         op = (self.gt @ sp.diags(c) @ self.g).tocsr()
         if m <= self.lu_max_cells:
@@ -339,6 +353,21 @@ class BandPoisson:
         full = np.zeros(g.shape)
         full[self.b, self.a] = coef
         return sfft.idctn(full, type=2, norm="ortho").ravel()
+
+
+def power_of_two_scale(b: np.ndarray) -> float:
+    """``2^e`` with ``max |b| / 2^e`` in ``[0.5, 1)`` (0 for ``b = 0``): dividing by it is
+    exact, and the scaled vector's squared norm cannot overflow.
+
+    Raises:
+        NumericalError: ``b`` holds a NaN or an infinity.
+    """
+    top = float(np.max(np.abs(b), initial=0.0))
+    if not np.isfinite(top):
+        raise NumericalError("gradient update: the right-hand side is not finite")
+    if top == 0.0:
+        return 0.0
+    return float(np.ldexp(1.0, int(np.frexp(top)[1])))
 
 
 def _gradient_eigenvalues(n: int, h: float) -> np.ndarray:
