@@ -37,6 +37,10 @@ ALIAS_TOLERANCE = 1e-13
 """Largest aliasing factor ``exp(-pi^2 (h / dx)^2 / 2)`` at which :class:`Smoother`
 uses the cosine transforms instead of the kernel matrices."""
 
+TRANSFORM_MIN_SIDE = 129
+"""Fewest cells per side on which :class:`Smoother` uses the cosine transforms: on
+smaller grids the matrix products are faster (measured at n = 64 and 128)."""
+
 
 class Smoother:
     """``p -> (K_h * p, grad (K_h * p))`` on a grid.
@@ -48,11 +52,15 @@ class Smoother:
     largest at the grid's Nyquist mode, where it is ``exp(-pi^2 (h / dx)^2 / 2)``. The
     transform form multiplies the Neumann cosine coefficients by :func:`transfer` and
     differentiates the cosine series exactly (sine coefficients ``-kappa_a c_a``). The
-    two agree to that factor; where it is below ``ALIAS_TOLERANCE`` on both axes
-    (``h / dx > 2.46``, i.e. grids finer than about 62 cells per side at ``h = 0.04``)
-    and the kernel has its wall images, the transforms are used: ``O(M log M)`` against
-    the matrices' ``O(M^1.5)`` (4.7 against about 1.5 ms at n = 256). On coarser grids
-    the matrices, whose aliasing is what the KDE's own quadrature has.
+    two agree to that factor where it is below ``ALIAS_TOLERANCE`` on both axes (``h /
+    dx > 2.46``, grids finer than about 62 cells per side at ``h = 0.04``). The
+    transforms cost ``O(M log M)`` against the matrices' ``O(M^1.5)``, but with their
+    constants the matrices are faster up to n = 128 (0.2 against 0.5 ms at n = 64, 0.9
+    to 1.7 against 1.2 to 2.0 ms at 128) and slower at 256 (7.6 to 8.9 against 4.4 to
+    7.3 ms; one core, ranges over runs on a host whose speed drifts). So the transforms
+    are used where they agree to round-off, the kernel has its wall images and the grid
+    has at least ``TRANSFORM_MIN_SIDE`` cells per side; elsewhere the matrices, whose
+    aliasing on coarse grids is what the KDE's own quadrature has.
 
     Args:
         grid: The grid.
@@ -65,7 +73,9 @@ class Smoother:
         self.gx, self.dgx = kernel_1d(grid.x, grid.x, bandwidth, grid.x0, grid.x1, mirror)
         self.gy, self.dgy = kernel_1d(grid.y, grid.y, bandwidth, grid.y0, grid.y1, mirror)
         alias = np.exp(-0.5 * (np.pi * bandwidth / max(grid.dx, grid.dy)) ** 2)
-        self.spectral = bool(mirror and alias <= ALIAS_TOLERANCE)
+        self.spectral = bool(
+            mirror and alias <= ALIAS_TOLERANCE and min(grid.nx, grid.ny) >= TRANSFORM_MIN_SIDE
+        )
         kx = np.pi * np.arange(grid.nx) / (grid.x1 - grid.x0)
         ky = np.pi * np.arange(grid.ny) / (grid.y1 - grid.y0)
         self._transfer = transfer(ky, bandwidth)[:, None] * transfer(kx, bandwidth)[None, :]
@@ -102,14 +112,17 @@ class Smoother:
 
 
 def _derivative(coef: np.ndarray, k: np.ndarray, axis: int) -> np.ndarray:
-    """Orthonormal DST-II coefficients of the derivative along ``axis`` of the cosine
-    series with orthonormal DCT-II coefficients ``coef``: ``d/dx phi_a = -k_a psi_{a-1}``
-    for ``a >= 1`` (both ``sqrt(2 / n)`` normalised), nothing at index ``n - 1``.
+    """Orthonormal DST-II coefficients of the derivative along ``axis`` (0 or 1) of the
+    cosine series with orthonormal DCT-II coefficients ``coef`` ``(n_y, n_x)``: ``d/dx
+    phi_a = -k_a psi_{a-1}`` for ``a >= 1`` (both ``sqrt(2 / n)`` normalised), nothing at
+    index ``n - 1``.
     """
-    c = np.moveaxis(coef, axis, 0)
-    out = np.zeros_like(c)
-    out[:-1] = -k[1:].reshape(-1, *([1] * (c.ndim - 1))) * c[1:]
-    return np.moveaxis(out, 0, axis)
+    out = np.zeros(coef.shape)  # C order whatever the input's (the transforms' speed)
+    if axis == 0:
+        np.multiply(coef[1:, :], -k[1:, None], out=out[:-1, :])
+    else:
+        np.multiply(coef[:, 1:], -k[None, 1:], out=out[:, :-1])
+    return out
 
 
 def transfer(k: np.ndarray, bandwidth: float | None) -> np.ndarray:

@@ -34,14 +34,18 @@ def test_smoother_multiplies_cosine_modes_by_the_gaussian_transfer(n, h, i, j):
     np.testing.assert_allclose(grad, factor * np.stack([gx, gy]), atol=1e-7 * max(k, 1))
 
 
-@pytest.mark.parametrize("shape", [(64, 64), (128, 128), (100, 80)])
+@pytest.mark.parametrize("shape", [(64, 64), (128, 128), (100, 80), (256, 256)])
 def test_smoother_transform_form_equals_the_kernel_matrices_on_fine_grids(shape, rng):
-    """Where the aliasing factor is below round-off the transforms (used there) and the
-    kernel matrices give the same field and gradient for a rough density."""
+    """Where the aliasing factor is below round-off the transforms and the kernel
+    matrices give the same field and gradient for a rough density (the transforms are
+    used from TRANSFORM_MIN_SIDE cells per side on, where they are the faster form)."""
+    from harness.smoothing import ALIAS_TOLERANCE, TRANSFORM_MIN_SIDE
+
     nx, ny = shape
     g = Grid(nx, ny, 0.0, nx / 100 if nx != ny else 1.0, 0.0, ny / 100 if nx != ny else 1.0)
     sm = Smoother(g, 0.04)
-    assert sm.spectral
+    assert np.exp(-0.5 * (np.pi * 0.04 / max(g.dx, g.dy)) ** 2) <= ALIAS_TOLERANCE
+    assert sm.spectral == (min(nx, ny) >= TRANSFORM_MIN_SIDE)
     p = rng.random(g.shape)
     (a, ga), (b, gb) = sm.matrices(p), sm.transformed(p)
     np.testing.assert_allclose(b, a, atol=1e-13 * np.abs(a).max())
