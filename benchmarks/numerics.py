@@ -126,8 +126,8 @@ def bench_closed_loop(quick: bool, repeats: int = 3) -> bool:
     tens of per cent between runs minutes apart.
     """
     print(
-        f"Closed loop, both fast filters, N = 1024, dt = 0.01 (steps per second; median of "
-        f"{repeats} runs, range in brackets):"
+        f"Closed loop, both fast filters, N = 1024, dt = 0.01 (steps per second = 1 / median "
+        f"step time; median of {repeats} runs, range in brackets):"
     )
     cases = ((30, 1000, 1000), (64, 200, 400), (128, 100, 200), (256, 25, 60))
     rates: dict[int, list[float]] = {n: [] for n, _, _ in cases}

@@ -1199,8 +1199,10 @@ class BatchedPoisson:
     across the domain mid-run); what is left sets the iteration count (about 35 for a
     relative residual of ``1e-10`` mid-run at paper scale, ``python -m
     benchmarks.distributed --gradient-filter``). A robot stops when its residual is
-    below ``tol`` relative to ``b_i``; its arithmetic does not depend on the other
-    robots.
+    below ``tol`` relative to ``b_i``; a robot that has not, or whose iteration broke
+    down above it, stops the run (:class:`~harness.fokker_planck.NumericalError`). The
+    result is reproducible for the same robots; a robot's bits may differ at round-off
+    with the batch it is solved in (the blocking of the batched matrix products).
     """
 
     def __init__(self, grid: Grid, tol: float = 1e-10) -> None:
@@ -1227,9 +1229,10 @@ class BatchedPoisson:
         """``S_i`` ``(N, M)``: per cell, the mean of the four gradient-grid weights that
         enter its diagonal entry of ``G^T diag(c_i) G`` (central differences: ``c_x`` of
         the left and right neighbours, ``c_y`` of the lower and upper ones; a wall cell
-        uses itself for the missing one), so that ``S_i`` times the unweighted diagonal
-        is the weighted one in the interior. (The plain per-cell mean of ``c_i`` needs
-        about 50 rather than 35 iterations mid-run at paper scale.) Rows are robots.
+        uses itself for the missing one), so that on square cells (``dx = dy``) ``S_i``
+        times the unweighted diagonal is the weighted one in the interior. (The plain
+        per-cell mean of ``c_i`` needs about 50 rather than 35 iterations mid-run at
+        paper scale.) Rows are robots.
         """
         g = self.grid
         n = c.shape[0]
@@ -1268,7 +1271,7 @@ class BatchedPoisson:
 
     def laplacian_pinv(self, r: np.ndarray) -> np.ndarray:
         """``(G^T G)^+ r_i`` for every row of ``r`` ``(N, M)`` (robots in rows)."""
-        cols = np.ascontiguousarray(r.T, dtype=float)
+        cols = np.array(r.T, dtype=float, order="C")  # a copy: never a view of r
         return np.ascontiguousarray(self.pinv_columns(cols, cols).T)
 
     def solve(self, c: np.ndarray, b: np.ndarray, maxiter: int = 500) -> np.ndarray:
@@ -1284,9 +1287,14 @@ class BatchedPoisson:
         top = np.max(np.abs(b), axis=1)
         if not np.isfinite(top).all():
             raise NumericalError("gradient update: a robot's right-hand side is not finite")
-        # each robot's right-hand side divided by a power of two near its largest entry:
-        # exact, and its inner products cannot overflow
-        unit = np.where(top > 0.0, np.ldexp(1.0, np.frexp(top)[1]), 1.0)
+        if not (np.isfinite(c).all() and (c > 0.0).all()):
+            raise NumericalError(
+                "gradient update: a robot's information is not finite and positive"
+            )
+        # each robot's right-hand side divided by a power of two near its largest entry
+        # (the largest entry scaled into [1, 2)): exact, and its inner products cannot
+        # overflow
+        unit = np.where(top > 0.0, np.ldexp(1.0, np.frexp(top)[1] - 1), 1.0)
         ct = np.ascontiguousarray(c.T)
         scale = np.ascontiguousarray((1.0 / np.sqrt(self.diagonal_weights(c))).T)
         r = np.array(b.T / unit, dtype=float, order="C")
@@ -1324,10 +1332,15 @@ class BatchedPoisson:
             d += z
             rz = rz_new
         self.iterations = its
-        if active.any():
+        # every robot, also one whose iteration stopped on a vanishing r^T z or d^T A d:
+        # its residual off the constants (the part of b along them cannot be reduced)
+        r -= r.mean(axis=0)
+        off = np.sqrt(np.einsum("ij,ij->j", r, r))
+        failed = ~(off <= self.tol * b_norm)
+        if failed.any():
             raise NumericalError(
-                f"gradient update: {int(active.sum())} robots' Poisson solves did not "
-                f"converge in {maxiter} iterations"
+                f"gradient update: {int(failed.sum())} robots' Poisson solves did not "
+                f"reach the tolerance in {its} iterations"
             )
         x -= x.mean(axis=0)
         x *= unit

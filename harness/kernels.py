@@ -517,18 +517,19 @@ band_gram_serial = numba.njit(cache=True, nogil=True)(_band_gram)
 def squared_transition(
     indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, dt: float, d: np.ndarray
 ) -> np.ndarray:  # pragma: no cover - compiled
-    """``(F1 o F1) d`` for ``F1 = I + dt A`` (CSR arrays of ``A``) and the columns of
-    ``d`` ``(M, c)``: row ``i`` is ``sum_j (F1_ij)^2 d_j``, with ``F1_ii = 1 + dt a_ii``
-    and ``F1_ij = dt a_ij`` off the diagonal, in one pass over the matrix. The numpy
-    statement is :func:`harness.filters.local.squared_transition_reference`.
+    """``(F1 o F1) d`` for ``F1 = I + dt A`` (CSR arrays of ``A`` without duplicate
+    entries) and the columns of ``d`` ``(M, c)``: row ``i`` is ``sum_j (F1_ij)^2 d_j``,
+    with ``F1_ii = 1 + dt a_ii`` and ``F1_ij = dt a_ij`` off the diagonal, in one pass
+    over the matrix (a row without a stored diagonal keeps ``d_i``). The numpy statement
+    is :func:`harness.filters.local.squared_transition_reference`.
     """
     m, c = d.shape
-    out = np.zeros((m, c))
+    out = d.copy()  # the identity's part; a stored diagonal adds (1 + f)^2 - 1
     for i in range(m):
         for jj in range(indptr[i], indptr[i + 1]):
             j = indices[jj]
-            f = dt * data[jj] + (1.0 if j == i else 0.0)
-            f2 = f * f
+            f = dt * data[jj]
+            f2 = f * f + (2.0 * f if j == i else 0.0)
             for k in range(c):
                 out[i, k] += f2 * d[j, k]
     return out

@@ -57,9 +57,12 @@ class Smoother:
     transforms cost ``O(M log M)`` against the matrices' ``O(M^1.5)``, but with their
     constants the matrices are faster up to n = 128 (0.2 against 0.5 ms at n = 64, 0.9
     to 1.7 against 1.2 to 2.0 ms at 128) and slower at 256 (7.6 to 8.9 against 4.4 to
-    7.3 ms; one core, ranges over runs on a host whose speed drifts). So the transforms
-    are used where they agree to round-off, the kernel has its wall images and the grid
-    has at least ``TRANSFORM_MIN_SIDE`` cells per side; elsewhere the matrices, whose
+    7.3 ms; one core, ranges over runs on a host whose speed drifts). The transforms
+    also hold every wall image where the matrices hold the first one per wall; the next
+    ones lie a domain length ``L`` away, so the two agree when ``exp(-(L / h)^2 / 2)`` is
+    negligible too (``L / h > 7.7``; 25 at the paper's ``h``). So the transforms are used
+    where both factors are below ``ALIAS_TOLERANCE``, the kernel has its wall images and
+    the grid has at least ``TRANSFORM_MIN_SIDE`` cells per side; elsewhere the matrices, whose
     aliasing on coarse grids is what the KDE's own quadrature has.
 
     Args:
@@ -73,8 +76,14 @@ class Smoother:
         self.gx, self.dgx = kernel_1d(grid.x, grid.x, bandwidth, grid.x0, grid.x1, mirror)
         self.gy, self.dgy = kernel_1d(grid.y, grid.y, bandwidth, grid.y0, grid.y1, mirror)
         alias = np.exp(-0.5 * (np.pi * bandwidth / max(grid.dx, grid.dy)) ** 2)
+        # the transforms hold every wall image, the matrices the first one per wall (the
+        # next are a domain length away): equal where exp(-(L / h)^2 / 2) is negligible
+        span = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
+        images = np.exp(-0.5 * (span / bandwidth) ** 2)
         self.spectral = bool(
-            mirror and alias <= ALIAS_TOLERANCE and min(grid.nx, grid.ny) >= TRANSFORM_MIN_SIDE
+            mirror
+            and max(alias, images) <= ALIAS_TOLERANCE
+            and min(grid.nx, grid.ny) >= TRANSFORM_MIN_SIDE
         )
         kx = np.pi * np.arange(grid.nx) / (grid.x1 - grid.x0)
         ky = np.pi * np.arange(grid.ny) / (grid.y1 - grid.y0)

@@ -241,8 +241,12 @@ def test_batched_poisson_matches_sparse_lu_per_robot_and_refuses_to_stop_early(r
     np.testing.assert_allclose(
         bp.laplacian_pinv(b), b @ np.linalg.pinv(lap).T, atol=1e-10 * np.abs(b).max()
     )
-    with pytest.raises(NumericalError, match="did not converge"):
+    with pytest.raises(NumericalError, match="did not reach the tolerance"):
         bp.solve(c, b, maxiter=2)
+    bad = c.copy()
+    bad[2, 7] = np.nan  # a broken robot's weights: refused, never a NaN estimate
+    with pytest.raises(NumericalError, match="not finite and positive"):
+        bp.solve(bad, b)
 
 
 @pytest.mark.parametrize("gradient", ["filter", "grid"])

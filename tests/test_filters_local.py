@@ -26,6 +26,23 @@ def test_squared_transition_is_the_diagonal_of_the_congruence(rng):
     np.testing.assert_allclose(
         squared_transition(a, 0.02, cols), squared_transition_reference(a, 0.02, cols), rtol=1e-14
     )
+    # rows without a stored diagonal, and duplicate entries, against the dense congruence
+    import scipy.sparse as sp
+
+    base = sp.random(g.size, g.size, density=0.1, random_state=1, format="csr")
+    base.sort_indices()
+    # every stored entry twice (half each): a CSR matrix with duplicates, as given
+    rows = [base.indices[base.indptr[i] : base.indptr[i + 1]] for i in range(g.size)]
+    vals = [base.data[base.indptr[i] : base.indptr[i + 1]] / 2 for i in range(g.size)]
+    indptr = np.concatenate([[0], np.cumsum([2 * r.size for r in rows])])
+    b = sp.csr_matrix(
+        (np.concatenate([np.tile(v, 2) for v in vals]),
+         np.concatenate([np.tile(r, 2) for r in rows]), indptr),
+        shape=base.shape,
+    )  # fmt: skip
+    assert not b.has_canonical_format and (b.diagonal() == 0).any()
+    f1 = np.eye(g.size) + 0.02 * b.toarray()
+    np.testing.assert_allclose(squared_transition(b, 0.02, d), np.diag(f1 @ np.diag(d) @ f1.T))
 
 
 def test_weighted_poisson_is_exact_under_huge_right_hand_sides(rng):

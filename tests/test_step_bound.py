@@ -34,15 +34,18 @@ def test_smoother_multiplies_cosine_modes_by_the_gaussian_transfer(n, h, i, j):
     np.testing.assert_allclose(grad, factor * np.stack([gx, gy]), atol=1e-7 * max(k, 1))
 
 
-@pytest.mark.parametrize("shape", [(64, 64), (128, 128), (100, 80), (256, 256)])
-def test_smoother_transform_form_equals_the_kernel_matrices_on_fine_grids(shape, rng):
+@pytest.mark.parametrize(
+    "nx,ny,lx,ly",
+    [(64, 64, 1, 1), (128, 128, 1, 1), (100, 80, 1, 0.8), (256, 256, 1, 1), (200, 150, 1, 1)],
+)
+def test_smoother_transform_form_equals_the_kernel_matrices_on_fine_grids(nx, ny, lx, ly, rng):
     """Where the aliasing factor is below round-off the transforms and the kernel
-    matrices give the same field and gradient for a rough density (the transforms are
-    used from TRANSFORM_MIN_SIDE cells per side on, where they are the faster form)."""
+    matrices give the same field and gradient for a rough density, also with dx != dy
+    (the transforms are used from TRANSFORM_MIN_SIDE cells per side on, where they are
+    the faster form)."""
     from harness.smoothing import ALIAS_TOLERANCE, TRANSFORM_MIN_SIDE
 
-    nx, ny = shape
-    g = Grid(nx, ny, 0.0, nx / 100 if nx != ny else 1.0, 0.0, ny / 100 if nx != ny else 1.0)
+    g = Grid(nx, ny, 0.0, lx, 0.0, ly)
     sm = Smoother(g, 0.04)
     assert np.exp(-0.5 * (np.pi * 0.04 / max(g.dx, g.dy)) ** 2) <= ALIAS_TOLERANCE
     assert sm.spectral == (min(nx, ny) >= TRANSFORM_MIN_SIDE)
@@ -50,6 +53,17 @@ def test_smoother_transform_form_equals_the_kernel_matrices_on_fine_grids(shape,
     (a, ga), (b, gb) = sm.matrices(p), sm.transformed(p)
     np.testing.assert_allclose(b, a, atol=1e-13 * np.abs(a).max())
     np.testing.assert_allclose(gb, ga, atol=1e-12 * np.abs(ga).max())
+
+
+def test_smoother_keeps_the_matrices_for_kernels_wide_enough_to_see_further_images():
+    """The matrices hold one image per wall, the transforms all: for h = 0.25 on the
+    unit square the two differ by per cents, and the transforms are not used."""
+    g = Grid.square(256)
+    sm = Smoother(g, 0.25)
+    assert not sm.spectral
+    p = np.random.default_rng(0).random(g.shape)
+    ga, gb = sm.matrices(p)[1], sm.transformed(p)[1]
+    assert np.abs(gb - ga).max() > 1e-3 * np.abs(ga).max()
 
 
 def test_smoother_forms_differ_on_coarse_grids_by_the_alias_of_the_sampling():

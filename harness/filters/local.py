@@ -99,6 +99,9 @@ def squared_transition(a: sp.csr_matrix, dt: float, d: np.ndarray) -> np.ndarray
     is the numpy statement.
     """
     a = a.tocsr()
+    if not a.has_canonical_format:  # duplicates summed first, as the diagonal() is
+        a = a.copy()
+        a.sum_duplicates()
     cols = np.ascontiguousarray(d, dtype=float).reshape(d.shape[0], -1)
     out = compiled_squared_transition(a.indptr, a.indices, a.data, float(dt), cols)
     return out.reshape(d.shape)
@@ -189,8 +192,11 @@ class WeightedPoisson:
         inner products do not overflow for right-hand sides above about 1e154.
 
         Raises:
-            NumericalError: ``b`` is not finite.
+            NumericalError: ``b`` is not finite, ``c`` not finite and positive, or the
+                iteration does not reach the tolerance.
         """
+        if not (np.isfinite(c).all() and (c > 0.0).all()):
+            raise NumericalError("gradient update: the information is not finite and positive")
         unit = power_of_two_scale(b)
         if unit == 0.0:
             return np.zeros_like(b)
@@ -202,20 +208,27 @@ class WeightedPoisson:
         if m <= self.lu_max_cells:
             if self._lu is None:
                 self._lu = self._lu_preconditioner(op)
-            delta, its = _pcg(op, self._lu, b, self.tol)
-            if its > self.refactor_after:
+            delta, its, converged = _pcg(op, self._lu, b, self.tol)
+            if not converged:  # the lagged factor may be stale: once more with a fresh one
+                self._lu = self._lu_preconditioner(op)
+                delta, its, converged = _pcg(op, self._lu, b, self.tol)
+            elif its > self.refactor_after:
                 self._lu = self._lu_preconditioner(op)
             self.iterations = its
+            if not converged:
+                raise NumericalError("gradient update: the weighted Poisson solve did not converge")
             return delta - delta.mean()
         scale = 1.0 / np.sqrt(0.5 * (c[:m] + c[m:]))
 
         def precondition(r: np.ndarray) -> np.ndarray:
             return scale * self._laplacian_pinv(scale * r)
 
-        delta, its = _pcg(op, precondition, b, self.tol, self.maxiter)
-        if its >= self.maxiter:
-            delta, its = _pcg(op, self._lu_preconditioner(op), b, self.tol)
+        delta, its, converged = _pcg(op, precondition, b, self.tol, self.maxiter)
+        if not converged:
+            delta, its, converged = _pcg(op, self._lu_preconditioner(op), b, self.tol)
         self.iterations = its
+        if not converged:
+            raise NumericalError("gradient update: the weighted Poisson solve did not converge")
         return delta - delta.mean()
 
 
@@ -356,8 +369,9 @@ class BandPoisson:
 
 
 def power_of_two_scale(b: np.ndarray) -> float:
-    """``2^e`` with ``max |b| / 2^e`` in ``[0.5, 1)`` (0 for ``b = 0``): dividing by it is
-    exact, and the scaled vector's squared norm cannot overflow.
+    """``2^e`` with ``max |b| / 2^e`` in ``[1, 2)`` (0 for ``b = 0``): dividing by it is
+    exact (the scale itself is finite up to the largest float), and the scaled vector's
+    squared norm cannot overflow.
 
     Raises:
         NumericalError: ``b`` holds a NaN or an infinity.
@@ -367,7 +381,7 @@ def power_of_two_scale(b: np.ndarray) -> float:
         raise NumericalError("gradient update: the right-hand side is not finite")
     if top == 0.0:
         return 0.0
-    return float(np.ldexp(1.0, int(np.frexp(top)[1])))
+    return float(np.ldexp(1.0, int(np.frexp(top)[1]) - 1))
 
 
 def _gradient_eigenvalues(n: int, h: float) -> np.ndarray:
@@ -382,13 +396,23 @@ def _gradient_eigenvalues(n: int, h: float) -> np.ndarray:
 
 def _pcg(
     op: sp.csr_matrix, precond, b: np.ndarray, tol: float, maxiter: int = 200
-) -> tuple[np.ndarray, int]:
-    """Preconditioned conjugate gradients from zero; returns ``(x, iterations)``."""
+) -> tuple[np.ndarray, int, bool]:
+    """Preconditioned conjugate gradients from zero for the operator ``G^T diag(c) G``,
+    singular on the constants; returns ``(x, iterations, converged)``, converged when
+    the residual off the constants is at most ``tol ||b||`` (the part of ``b`` along
+    the constants, zero up to round-off for ``b = G^T v``, cannot be reduced and is
+    ignored). An iteration that breaks down (``r^T z <= 0`` or ``d^T A d <= 0``) stops
+    and reports that test.
+    """
     x = np.zeros_like(b)
     r = b.copy()
     b_norm = float(np.linalg.norm(b))
     if b_norm == 0.0:
-        return x, 0
+        return x, 0, True
+
+    def done() -> bool:
+        return bool(np.linalg.norm(r - r.mean()) <= tol * b_norm)
+
     z = precond(r)
     d = z.copy()
     rz = float(r @ z)
@@ -396,19 +420,18 @@ def _pcg(
         ad = op @ d
         curvature = float(d @ ad)
         if rz <= 0.0 or curvature <= 0.0:
-            # the preconditioned residual vanished (it lies on the constants, which the
-            # operator does not see): converged to round-off
-            return x, it - 1
+            # the preconditioned residual vanished: converged to round-off, or broke down
+            return x, it - 1, done()
         step = rz / curvature
         x += step * d
         r -= step * ad
         if np.linalg.norm(r) <= tol * b_norm:
-            return x, it
+            return x, it, True
         z = precond(r)
         rz_new = float(r @ z)
         d = z + (rz_new / rz) * d
         rz = rz_new
-    return x, maxiter
+    return x, maxiter, done()
 
 
 class LocalFilters:
