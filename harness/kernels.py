@@ -299,6 +299,21 @@ def _jacobi_series(
     return x, terms, res
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _stencil_sum(rhs, w, x, i, k, row, col, nx, ny):  # pragma: no cover - compiled
+    """``rhs_i + sum_j N_ij x_j`` for cell ``i`` (``row``, ``col``) and column ``k`` of
+    :func:`_red_black`; out-of-grid neighbours have weight 0, so cell ``i`` is read.
+    """
+    iw = i - 1 if col > 0 else i
+    ie = i + 1 if col < nx - 1 else i
+    is_ = i - nx if row > 0 else i
+    in_ = i + nx if row < ny - 1 else i
+    return (
+        rhs[i, k] + w[i, 0] * x[iw, k] + w[i, 1] * x[ie, k]
+        + w[i, 2] * x[is_, k] + w[i, 3] * x[in_, k]
+    )  # fmt: skip
+
+
 def _red_black(
     indptr: np.ndarray,
     indices: np.ndarray,
@@ -378,15 +393,7 @@ def _red_black(
                 acc = 0.0
                 for col in range(row % 2, nx, 2):
                     i = row * nx + col
-                    # out-of-grid neighbours have weight 0: read cell i instead
-                    iw = i - 1 if col > 0 else i
-                    ie = i + 1 if col < nx - 1 else i
-                    is_ = i - nx if row > 0 else i
-                    in_ = i + nx if row < ny - 1 else i
-                    s = (
-                        rhs[i, k] + w[i, 0] * x[iw, k] + w[i, 1] * x[ie, k]
-                        + w[i, 2] * x[is_, k] + w[i, 3] * x[in_, k]
-                    )  # fmt: skip
+                    s = _stencil_sum(rhs, w, x, i, k, row, col, nx, ny)
                     res_i = s - diag[i] * x[i, k]
                     r[i, k] = res_i
                     acc += abs(res_i)
@@ -406,14 +413,7 @@ def _red_black(
             for k in range(c):
                 for col in range((row + 1) % 2, nx, 2):
                     i = row * nx + col
-                    iw = i - 1 if col > 0 else i
-                    ie = i + 1 if col < nx - 1 else i
-                    is_ = i - nx if row > 0 else i
-                    in_ = i + nx if row < ny - 1 else i
-                    s = (
-                        rhs[i, k] + w[i, 0] * x[iw, k] + w[i, 1] * x[ie, k]
-                        + w[i, 2] * x[is_, k] + w[i, 3] * x[in_, k]
-                    )  # fmt: skip
+                    s = _stencil_sum(rhs, w, x, i, k, row, col, nx, ny)
                     x[i, k] = s / diag[i]
         sweeps += 1
     # back to the last full sweep on red cells, plus the residual when converged (the
