@@ -46,7 +46,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from harness.grid import Grid
-from harness.kernels import assemble_faces, jacobi_series, red_black
+from harness.kernels import assemble_operator, jacobi_series, red_black
 from harness.velocity import VelocityField
 
 
@@ -192,13 +192,13 @@ class FokkerPlanck:
         """Sparse ``A(v)`` with ``dp/dt = A(v) p`` on flattened fields (eq. ``FP
         equation``); columns sum to zero, off-diagonals are ``>= 0``.
 
-        Filled by the compiled :func:`harness.kernels.assemble_faces`, equal bit for
-        bit to :meth:`matrix_reference`.
+        Filled by the compiled :func:`harness.kernels.assemble_operator` (face rates and
+        assembly in one pass over the rows), equal bit for bit to
+        :meth:`matrix_reference`.
         """
-        a_l, a_r = self._face_rates(v)
-        pat = self._pattern
-        data = assemble_faces(a_l, a_r, pat.slot, pat.diag_slot, pat.nnz)
-        return sp.csr_matrix((data, pat.indices, pat.indptr), shape=(self.grid.size,) * 2)
+        g, pat = self.grid, self._pattern
+        data = assemble_operator(v.face_x, v.face_y, self.sigma, g.dx, g.dy, pat.indptr)
+        return sp.csr_matrix((data, pat.indices, pat.indptr), shape=(g.size,) * 2)
 
     def matrix_reference(self, v: VelocityField) -> sp.csr_matrix:
         """Plain-numpy statement of :meth:`matrix` (``np.bincount`` over the entries)."""

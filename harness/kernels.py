@@ -8,7 +8,11 @@ use and cached on disk next to this file.
 
 from __future__ import annotations
 
+import math
 import os
+import types
+from collections.abc import Callable
+from typing import Any
 
 # Idle OpenMP workers sleep instead of spinning (unless the user chose otherwise):
 # on a machine shared with other jobs (sweeps run one job per core) spinning
@@ -18,6 +22,25 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
 import numba
 import numpy as np
+
+
+def _build(fn: Callable[..., Any], parallel: bool) -> Any:
+    """``numba.njit(cache=True, nogil=True, parallel=parallel)`` of a copy of ``fn``
+    named ``<fn>_parallel`` or ``<fn>_serial``.
+
+    Why a copy: numba's on-disk cache names an entry by the function's qualified name
+    and first line and keys it by signature and bytecode, not by the compile flags, so
+    the serial and the parallel build of one function shared one entry, and whichever
+    was compiled first was loaded by both (measured: the cached "parallel" assembly ran
+    at the serial speed). The copies have their own names, so their own entries.
+    """
+    suffix = "_parallel" if parallel else "_serial"
+    copy = types.FunctionType(
+        fn.__code__, fn.__globals__, fn.__name__ + suffix, fn.__defaults__, fn.__closure__
+    )
+    copy.__qualname__ = fn.__qualname__ + suffix
+    copy.__doc__, copy.__module__ = fn.__doc__, fn.__module__
+    return numba.njit(cache=True, nogil=True, parallel=parallel)(copy)
 
 
 def _euler_maruyama_step(
@@ -76,8 +99,8 @@ PARALLEL_MIN_ROBOTS = 1 << 15
 """Fewer robots run the serial build of the same loop: a parallel region costs more
 than it saves on small swarms, and much more when the cores are oversubscribed."""
 
-_em_serial = numba.njit(cache=True, nogil=True)(_euler_maruyama_step)
-_em_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_euler_maruyama_step)
+_em_serial = _build(_euler_maruyama_step, parallel=False)
+_em_parallel = _build(_euler_maruyama_step, parallel=True)
 
 
 def euler_maruyama_step(
@@ -194,33 +217,101 @@ def linear_binning(
     return linear_binning_chunked(pos, x0, x1, y0, y1, bx, by, chunk)
 
 
-@numba.njit(cache=True, nogil=True)
-def assemble_faces(
-    a_l: np.ndarray, a_r: np.ndarray, slot: np.ndarray, diag_slot: np.ndarray, nnz: int
-) -> np.ndarray:
-    """CSR data of the finite-volume operator from its face rates (1 / time).
-
-    Face ``f`` between cells ``L`` and ``R`` adds ``-a_l`` to ``(L, L)``, ``a_r`` to
-    ``(L, R)``, ``a_l`` to ``(R, L)`` and ``-a_r`` to ``(R, R)``; ``slot`` holds the
-    CSR positions of those four entries for every face (four blocks of ``F``), and
-    ``diag_slot`` those of the diagonal. The additions run in the order of
-    ``np.bincount`` over the concatenation ``[-a_l, a_r, a_l, -a_r, 0]`` (the
-    reference in :meth:`harness.fokker_planck.FokkerPlanck.matrix_reference`), so the
-    result is the same bit for bit.
+@numba.njit(cache=True, nogil=True, inline="always")
+def _face_rate_pair(u: float, sigma: float, h: float) -> tuple[float, float]:  # pragma: no cover
+    """``(a_L / h, a_R / h)`` of one face, the statement of
+    :func:`harness.fokker_planck.face_coefficients` operation for operation (so the same
+    bits): ``Pe = u h / sigma``, ``a_R = (sigma / h) (1 - Pe / 2)`` for ``|Pe| < 1e-6``
+    and ``u / expm1(Pe)`` otherwise, ``a_L = a_R + u``; upwind for ``sigma = 0``.
     """
-    out = np.zeros(nnz)
-    nf = a_l.size
-    for f in range(nf):
-        out[slot[f]] += -a_l[f]
-    for f in range(nf):
-        out[slot[nf + f]] += a_r[f]
-    for f in range(nf):
-        out[slot[2 * nf + f]] += a_l[f]
-    for f in range(nf):
-        out[slot[3 * nf + f]] += -a_r[f]
-    for c in range(diag_slot.size):
-        out[diag_slot[c]] += 0.0
+    if sigma == 0.0:
+        return max(u, 0.0) / h, max(-u, 0.0) / h
+    scale = sigma / h
+    pe = u / scale
+    a_r = scale * (1.0 - 0.5 * pe) if abs(pe) < 1e-6 else u / math.expm1(pe)
+    return (a_r + u) / h, a_r / h
+
+
+def _assemble_operator(
+    face_x: np.ndarray,
+    face_y: np.ndarray,
+    sigma: float,
+    dx: float,
+    dy: float,
+    indptr: np.ndarray,
+) -> np.ndarray:
+    """CSR data of ``A(v)`` (:meth:`harness.fokker_planck.FokkerPlanck.matrix`) straight
+    from the face velocities: the face rates (one parallel pass over the faces), then
+    the rows (one parallel pass over the cells).
+
+    Row ``i`` (cell ``(row, col)``) holds, in column order, ``i - n_x``, ``i - 1``,
+    ``i``, ``i + 1``, ``i + n_x`` where they exist: the inflow rates ``a_L`` of the faces
+    below and to the left, ``a_R`` of the faces to the right and above, and on the
+    diagonal the outflows ``0 - a_L(east) - a_L(north) - a_R(west) - a_R(south) + 0``,
+    added in that order, which is the order in which ``np.bincount`` adds them in
+    :meth:`~harness.fokker_planck.FokkerPlanck.matrix_reference` (x faces before y
+    faces, the ``-a_L`` block before the ``-a_R`` block): the same bits.
+    """
+    ny, nx = face_x.shape[0], face_y.shape[1]
+    xl = np.empty((ny, nx - 1))
+    xr = np.empty((ny, nx - 1))
+    yl = np.empty((ny - 1, nx))
+    yr = np.empty((ny - 1, nx))
+    for row in numba.prange(ny):
+        for col in range(nx - 1):
+            xl[row, col], xr[row, col] = _face_rate_pair(face_x[row, col], sigma, dx)
+        if row < ny - 1:
+            for col in range(nx):
+                yl[row, col], yr[row, col] = _face_rate_pair(face_y[row, col], sigma, dy)
+    out = np.empty(indptr[-1])
+    for row in numba.prange(ny):
+        for col in range(nx):
+            jj = indptr[row * nx + col]
+            if row > 0:  # the face below: this cell is its R side
+                out[jj] = 0.0 + yl[row - 1, col]
+                jj += 1
+            if col > 0:  # the face to the left
+                out[jj] = 0.0 + xl[row, col - 1]
+                jj += 1
+            centre = 0.0
+            if col < nx - 1:  # the face to the right: this cell is its L side
+                centre += -xl[row, col]
+            if row < ny - 1:  # the face above
+                centre += -yl[row, col]
+            if col > 0:
+                centre += -xr[row, col - 1]
+            if row > 0:
+                centre += -yr[row - 1, col]
+            out[jj] = centre + 0.0
+            jj += 1
+            if col < nx - 1:
+                out[jj] = 0.0 + xr[row, col]
+                jj += 1
+            if row < ny - 1:
+                out[jj] = 0.0 + yr[row, col]
     return out
+
+
+_assemble_serial = _build(_assemble_operator, parallel=False)
+_assemble_parallel = _build(_assemble_operator, parallel=True)
+
+
+def assemble_operator(
+    face_x: np.ndarray,
+    face_y: np.ndarray,
+    sigma: float,
+    dx: float,
+    dy: float,
+    indptr: np.ndarray,
+) -> np.ndarray:
+    """Compiled :func:`_assemble_operator`, parallel from ``PARALLEL_MIN_CELLS`` cells on
+    (each row is written by one thread; both builds give the same bits).
+    """
+    kernel = _assemble_parallel if indptr.size - 1 >= PARALLEL_MIN_CELLS else _assemble_serial
+    return kernel(
+        np.ascontiguousarray(face_x, dtype=float), np.ascontiguousarray(face_y, dtype=float),
+        float(sigma), float(dx), float(dy), indptr,
+    )  # fmt: skip
 
 
 ROW_BLOCK = 512
@@ -427,8 +518,8 @@ def _red_black(
     return x, sweeps, res
 
 
-_red_black_serial = numba.njit(cache=True, nogil=True)(_red_black)
-_red_black_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_red_black)
+_red_black_serial = _build(_red_black, parallel=False)
+_red_black_parallel = _build(_red_black, parallel=True)
 
 
 def red_black(
@@ -455,8 +546,8 @@ PARALLEL_MIN_CELLS = 1 << 16
 """Fewer cells run the serial build of the Jacobi series (one parallel region per
 term costs more than it saves on small grids, and much more on a busy machine)."""
 
-_jacobi_serial = numba.njit(cache=True, nogil=True)(_jacobi_series)
-_jacobi_parallel = numba.njit(cache=True, nogil=True, parallel=True)(_jacobi_series)
+_jacobi_serial = _build(_jacobi_series, parallel=False)
+_jacobi_parallel = _build(_jacobi_series, parallel=True)
 
 
 def jacobi_series(
@@ -509,8 +600,8 @@ def _band_gram(
             out[i, j] = wxi * wx[j] * gx + wyi * wy[j] * gy
 
 
-band_gram = numba.njit(cache=True, nogil=True, parallel=True)(_band_gram)
-band_gram_serial = numba.njit(cache=True, nogil=True)(_band_gram)
+band_gram = _build(_band_gram, parallel=True)
+band_gram_serial = _build(_band_gram, parallel=False)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -1,3 +1,6 @@
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -241,13 +244,64 @@ def _mid_run_velocity(g, rng):
     return p, paper_law(p, g.gradient(p), target, 0.003, 5e-5)
 
 
-def test_matrix_equals_bincount_reference_bit_for_bit(rng):
-    g = Grid(40, 33, 0.0, 1.0, 0.0, 0.7)
-    op = FokkerPlanck(g, 5e-5)
-    v = random_velocity(g, rng, 0.3)
+@pytest.mark.parametrize("shape", [(40, 33), (4, 5), (256, 256)])
+@pytest.mark.parametrize("sigma", [5e-5, 0.0, 1e-300, 3.0])
+@pytest.mark.parametrize("scale", [0.3, 1e-9, 0.0, 1e3])
+def test_matrix_equals_bincount_reference_bit_for_bit(shape, sigma, scale, rng):
+    # Peclet numbers from 0 (exactly) through the |Pe| < 1e-6 branch to overflow of
+    # expm1 (sigma = 1e-300), the upwind limit sigma = 0, and the parallel build (256^2)
+    g = Grid(*shape, 0.0, 1.0, 0.0, 0.7)
+    op = FokkerPlanck(g, sigma)
+    ny, nx = g.shape
+    v = VelocityField(
+        rng.normal(scale=scale, size=(2, ny, nx)),
+        rng.normal(scale=scale, size=(ny, nx - 1)),
+        rng.normal(scale=scale, size=(ny - 1, nx)),
+    )
     fast, ref = op.matrix(v), op.matrix_reference(v)
     assert np.array_equal(fast.data, ref.data)
     assert np.array_equal(fast.indices, ref.indices) and np.array_equal(fast.indptr, ref.indptr)
+
+
+def test_serial_and_parallel_builds_have_their_own_cache_entries(tmp_path):
+    """numba's disk cache keys an entry by name, line and bytecode, not by the flags:
+    two plain ``njit(cache=True)`` builds of one function load each other's code. A
+    build made by :func:`harness.kernels._build` after the other one was cached must
+    compile afresh (a cache miss), and load its own entry next time (a hit)."""
+    import subprocess
+    import sys
+
+    (tmp_path / "twobuilds.py").write_text(
+        "import numba\n"
+        "from harness.kernels import _build\n\n"
+        "def total(x):\n"
+        "    s = 0.0\n"
+        "    for i in numba.prange(x.size):\n"
+        "        s += x[i]\n"
+        "    return s\n\n"
+        "serial = _build(total, parallel=False)\n"
+        "parallel = _build(total, parallel=True)\n"
+    )
+    run = (
+        "import sys, numpy as np, twobuilds\n"
+        "k = getattr(twobuilds, sys.argv[1])\n"
+        "assert k(np.ones(10)) == 10.0\n"
+        "print(sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()))\n"
+    )
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / "cache")}
+    env["PYTHONPATH"] = os.pathsep.join([str(tmp_path), str(Path(__file__).parents[1])])
+
+    def hits_misses(name: str) -> list[int]:
+        out = subprocess.run(
+            [sys.executable, "-c", run, name], env=env, capture_output=True, text=True,
+            check=True,
+        )  # fmt: skip
+        return [int(w) for w in out.stdout.split()]
+
+    assert hits_misses("serial") == [0, 1]
+    assert hits_misses("parallel") == [0, 1]  # not the serial build's entry
+    assert hits_misses("parallel") == [1, 0]
+    assert hits_misses("serial") == [1, 0]
 
 
 @pytest.mark.parametrize("n", [128, 256])
