@@ -294,6 +294,7 @@ class BandPoisson:
         pairs = [(np.abs(b0 - b1), np.abs(a0 - a1)), (b0 + b1, np.abs(a0 - a1)),
                  (np.abs(b0 - b1), a0 + a1), (b0 + b1, a0 + a1)]  # fmt: skip
         self._take = [(y * width + x).ravel() for y, x in pairs]
+        self._quarter_suffices = 2 * int(self.a.max()) < nx and 2 * int(self.b.max()) < ny
         self._work = tuple(np.empty(self.a.size**2) for _ in range(5))
 
     @property
@@ -302,14 +303,29 @@ class BandPoisson:
         return int(self.a.size)
 
     def _extended(self, c: np.ndarray) -> np.ndarray:
-        """``E(beta, alpha)`` for ``beta < 2 n_y``, ``alpha < 2 n_x`` (see above)."""
+        """``E(beta, alpha)`` for ``beta < 2 n_y``, ``alpha < 2 n_x`` (see above); on
+        grids where the band's sum frequencies ``a + a'``, ``b + b'`` stay below ``n_x``,
+        ``n_y`` (every grid from ``n`` of about 2 kappa_c / pi on) only the quarter
+        ``beta < n_y``, ``alpha < n_x`` is read, and only the quarter is returned.
+        """
+        quarter = sfft.dctn(c.reshape(self.grid.shape), type=2)
+        quarter *= 0.25
+        if self._quarter_suffices:
+            return quarter
+        return self._extend(quarter)
+
+    def _extend(self, quarter: np.ndarray) -> np.ndarray:
+        """The quarter extended by the sign rules (see the class docstring)."""
         g = self.grid
-        quarter = sfft.dctn(c.reshape(g.shape), type=2) / 4.0
         e = np.zeros((2 * g.ny, 2 * g.nx))
         e[: g.ny, : g.nx] = quarter
         e[: g.ny, g.nx + 1 :] = -quarter[:, :0:-1]
         e[g.ny + 1 :, :] = -e[g.ny - 1 : 0 : -1, :]
         return e
+
+    def _full(self, c: np.ndarray) -> np.ndarray:
+        """``E`` on the whole ``2 n_y x 2 n_x`` range (the reference's flat indices)."""
+        return self._extend(0.25 * sfft.dctn(c.reshape(self.grid.shape), type=2))
 
     def _upper(self, c: np.ndarray) -> np.ndarray:
         """The upper triangle of :meth:`gram` (strict lower triangle undefined)."""
@@ -333,14 +349,14 @@ class BandPoisson:
         # preallocated work: fresh K x K temporaries cost page faults that dominate
         dd, sd, ds, ss, part = self._work
         gram = np.empty(k * k)
-        flat = self._extended(c[:m]).ravel()
+        flat = self._full(c[:m]).ravel()
         for i, out in zip(self._take, (dd, sd, ds, ss), strict=True):
             np.take(flat, i, out=out)
         np.add(dd, sd, out=part)  # x part: (dd + sd) - (ds + ss)
         part -= ds
         part -= ss
         np.multiply(self._fx, part, out=gram)
-        flat = self._extended(c[m:]).ravel()
+        flat = self._full(c[m:]).ravel()
         for i, out in zip(self._take, (dd, sd, ds, ss), strict=True):
             np.take(flat, i, out=out)
         np.subtract(dd, sd, out=part)  # y part: (dd - sd) + (ds - ss)
