@@ -192,9 +192,8 @@ class FokkerPlanck:
         """Sparse ``A(v)`` with ``dp/dt = A(v) p`` on flattened fields (eq. ``FP
         equation``); columns sum to zero, off-diagonals are ``>= 0``.
 
-        Filled by the compiled :func:`harness.kernels.assemble_operator` (face rates and
-        assembly in one pass over the rows), equal bit for bit to
-        :meth:`matrix_reference`.
+        Filled by the compiled :func:`harness.kernels.assemble_operator` (the face rates,
+        then the rows, in one call), equal bit for bit to :meth:`matrix_reference`.
         """
         g, pat = self.grid, self._pattern
         data = assemble_operator(v.face_x, v.face_y, self.sigma, g.dx, g.dy, pat.indptr)

@@ -543,8 +543,9 @@ def red_black(
 
 
 PARALLEL_MIN_CELLS = 1 << 16
-"""Fewer cells run the serial build of the Jacobi series (one parallel region per
-term costs more than it saves on small grids, and much more on a busy machine)."""
+"""Fewer cells (values, for several columns) run the serial build of the Jacobi series,
+the red-black sweeps and the assembly of ``A(v)`` (a parallel region costs more than it
+saves on small grids, and much more on a busy machine)."""
 
 _jacobi_serial = _build(_jacobi_series, parallel=False)
 _jacobi_parallel = _build(_jacobi_series, parallel=True)

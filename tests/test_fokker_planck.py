@@ -263,6 +263,28 @@ def test_matrix_equals_bincount_reference_bit_for_bit(shape, sigma, scale, rng):
     assert np.array_equal(fast.indices, ref.indices) and np.array_equal(fast.indptr, ref.indptr)
 
 
+def test_parallel_assembly_does_not_depend_on_thread_count(rng):
+    import numba
+
+    from harness import kernels
+
+    g = Grid.square(96)
+    op = FokkerPlanck(g, 5e-5)
+    v = random_velocity(g, rng, 0.01)
+    args = (v.face_x, v.face_y, 5e-5, g.dx, g.dy, op._pattern.indptr)
+    before = numba.get_num_threads()
+    try:
+        results = []
+        for threads in (1, 2):
+            numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+            results.append(kernels._assemble_parallel(*args))
+    finally:
+        numba.set_num_threads(before)
+    reference = op.matrix_reference(v).data
+    assert np.array_equal(results[0], reference) and np.array_equal(results[1], reference)
+    assert np.array_equal(kernels._assemble_serial(*args), reference)
+
+
 def test_serial_and_parallel_builds_have_their_own_cache_entries(tmp_path):
     """numba's disk cache keys an entry by name, line and bytecode, not by the flags:
     two plain ``njit(cache=True)`` builds of one function load each other's code. A
