@@ -17,6 +17,7 @@ import numpy as np
 from harness.components import flag, number
 from harness.densities import Target
 from harness.grid import Grid
+from harness.kernels import paper_velocity
 from harness.smoothing import smoothed_target, transfer
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
 
@@ -44,7 +45,8 @@ def paper_law(
     With exact estimates it equals eq. ``modified density feedback law 1``,
     ``v = -alpha grad(p / p_*) + sigma grad p_* / p_*``, and the closed loop is
     ``d_t p = div((alpha p + sigma p_*) grad(p / p_*))``. ``p_hat`` never appears in
-    a denominator.
+    a denominator. Compiled (:func:`harness.kernels.paper_velocity`, one pass, the same
+    bits as the numpy statement :func:`paper_law_reference`).
 
     Discretisation. Cell centres take the formula above. On the faces, the
     feedback term is the mean of its two neighbouring centre values, and the
@@ -57,6 +59,28 @@ def paper_law(
     ``feedback_target`` (default ``target``) replaces ``p_*`` in the feedback term only;
     the debiased law passes the smoothed target ``K_h * p_*`` there (see
     :class:`PaperControl`).
+    """
+    _check_gains(alpha, sigma)
+    g = target.grid
+    f = target if feedback_target is None else feedback_target
+    centres, face_x, face_y = paper_velocity(
+        np.ascontiguousarray(p_hat, dtype=float), np.ascontiguousarray(q_hat, dtype=float),
+        f.p, f.grad, target.p, target.grad, target.log_p,
+        float(alpha), float(sigma), g.dx, g.dy,
+    )  # fmt: skip
+    return VelocityField(centres, face_x, face_y)
+
+
+def paper_law_reference(
+    p_hat: np.ndarray,
+    q_hat: np.ndarray,
+    target: Target,
+    alpha: float,
+    sigma: float,
+    feedback_target: Target | None = None,
+) -> VelocityField:
+    """Numpy statement of :func:`paper_law` (which is compiled,
+    :func:`harness.kernels.paper_velocity`; the same bits).
     """
     _check_gains(alpha, sigma)
     g = target.grid
