@@ -63,6 +63,12 @@ def paper_law(
     _check_gains(alpha, sigma)
     g = target.grid
     f = target if feedback_target is None else feedback_target
+    p_hat, q_hat = np.asarray(p_hat), np.asarray(q_hat)
+    if p_hat.shape != g.shape or q_hat.shape != (2, *g.shape):
+        raise ValueError(
+            f"estimates of shapes {p_hat.shape} and {q_hat.shape} do not fit the grid "
+            f"{g.shape} (p_hat (ny, nx), q_hat (2, ny, nx))"
+        )
     centres, face_x, face_y = paper_velocity(
         np.ascontiguousarray(p_hat, dtype=float), np.ascontiguousarray(q_hat, dtype=float),
         f.p, f.grad, target.p, target.grad, target.log_p,

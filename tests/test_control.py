@@ -33,6 +33,13 @@ def test_compiled_paper_law_equals_the_numpy_statement_bit_for_bit(debias, rng):
         assert a.shape == b.shape and np.array_equal(a, b)
 
 
+def test_paper_law_refuses_estimates_off_the_grid(grid30, target30):
+    with pytest.raises(ValueError, match="do not fit the grid"):
+        paper_law(np.ones((30, 29)), np.zeros((2, 30, 30)), target30, 0.003, 5e-5)
+    with pytest.raises(ValueError, match="do not fit the grid"):
+        paper_law(np.ones((30, 30)), np.zeros((30, 30)), target30, 0.003, 5e-5)
+
+
 def test_paper_law_vanishes_at_target_with_exact_estimates(grid30, target30):
     v = paper_law(target30.p, grid30.gradient(target30.p), target30, 0.05, 0.0)
     assert np.abs(v.centres).max() < 1e-12
