@@ -60,8 +60,8 @@ def summary(pe: np.ndarray) -> tuple[float, float, float]:
     )
 
 
-def job_peclet(path: Path, at: float | None) -> tuple[object, np.ndarray]:
-    """``(grid size, Pe per cell)`` of the job logged at ``path``.
+def job_peclet(path: Path, at: float | None) -> tuple[object, np.ndarray, float]:
+    """``(grid size, Pe per cell, time of the field in s)`` of the job logged at ``path``.
 
     Raises:
         LogError: the log cannot be read.
@@ -82,7 +82,8 @@ def job_peclet(path: Path, at: float | None) -> tuple[object, np.ndarray]:
         index = int(later[0])
     dx, dy = series.cell_size
     size = flat.get("grid.n", flat.get("grid.nx", "?"))
-    return size, cell_peclet(series.values[index], (float(dx), float(dy)), sigma)
+    pe = cell_peclet(series.values[index], (float(dx), float(dy)), sigma)
+    return size, pe, float(times[index])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,13 +94,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logs = sorted(args.sweep_dir.rglob("run.mcap")) if args.sweep_dir.is_dir() else []
     groups: dict[object, list[np.ndarray]] = defaultdict(list)
+    times: dict[object, set[float]] = defaultdict(set)
     for log in logs:
         try:
-            size, pe = job_peclet(log, args.at)
+            size, pe, t = job_peclet(log, args.at)
         except (LogError, KeyError, ValueError) as err:
             print(f"warning: {log}: {err}", file=sys.stderr)
             continue
         groups[size].append(pe.ravel())
+        times[size].add(t)
     if not groups:
         print(f"error: no readable log with a velocity field below {args.sweep_dir}",
               file=sys.stderr)  # fmt: skip
@@ -109,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
         median, p90, upwind = summary(np.concatenate(groups[size]))
         print(f"  n = {size}: median {median:.3g}, 90th percentile {p90:.3g}, "
               f"above {UPWIND_PECLET:g} on {100 * upwind:.1f} % of cells "
-              f"({len(groups[size])} jobs)")  # fmt: skip
+              f"({len(groups[size])} jobs, t = "
+              f"{', '.join(f'{t:g}' for t in sorted(times[size]))} s)")  # fmt: skip
     return 0
 
 

@@ -48,8 +48,8 @@ def test_peclet_of_a_logged_run_is_the_drift_of_the_target(tmp_path, compose):
     g = target.grid
     expected = np.maximum(np.abs(target.grad[0]) * g.dx, np.abs(target.grad[1]) * g.dy)
     expected /= target.p
-    size, pe = job_peclet(tmp_path / "run", at=None)
-    assert size == 12
+    size, pe, t = job_peclet(tmp_path / "run", at=None)
+    assert size == 12 and t == pytest.approx(0.04)
     np.testing.assert_allclose(pe, expected, rtol=1e-5)  # the log holds float32
     with pytest.raises(ValueError, match="no velocity field"):
         job_peclet(tmp_path / "run", at=10.0)
