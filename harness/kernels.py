@@ -240,9 +240,10 @@ def _assemble_operator(
     dy: float,
     indptr: np.ndarray,
 ) -> np.ndarray:
-    """CSR data of ``A(v)`` (:meth:`harness.fokker_planck.FokkerPlanck.matrix`) straight
-    from the face velocities: the face rates (one parallel pass over the faces), then
-    the rows (one parallel pass over the cells).
+    """CSR data of ``A(v)``, the finite-volume operator of eq. ``FP equation``
+    (:meth:`harness.fokker_planck.FokkerPlanck.matrix`), straight from the face
+    velocities: the face rates (one parallel pass over the faces), then the rows (one
+    parallel pass over the cells).
 
     Row ``i`` (cell ``(row, col)``) holds, in column order, ``i - n_x``, ``i - 1``,
     ``i``, ``i + 1``, ``i + n_x`` where they exist: the inflow rates ``a_L`` of the faces
@@ -328,8 +329,10 @@ def paper_velocity(
     dx: float,
     dy: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
-    """Centre and face values of the paper's law (:func:`harness.control.paper_law`,
-    whose numpy statement is :func:`harness.control.paper_law_reference`) in one pass,
+    """Centre and face values of the paper's law (eq. ``modified density feedback law
+    using estimates``; :func:`harness.control.paper_law` holds the equation and its
+    discretisation, :func:`harness.control.paper_law_reference` the numpy statement) in
+    one pass,
     each value by the reference's operations in the reference's order (the same bits):
 
         feedback = (-alpha) (f_p q_hat - p_hat f_grad) / (f_p f_p),
