@@ -39,6 +39,7 @@ the sparse LU solve (:meth:`FokkerPlanck.step_lu`) as reference and last resort.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,7 +47,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from harness.grid import Grid
-from harness.kernels import assemble_operator, jacobi_series, red_black
+from harness.kernels import assemble_operator, jacobi_series, neumann_series, red_black
 from harness.velocity import VelocityField
 
 
@@ -173,11 +174,20 @@ class FokkerPlanck:
     sigma: float
     mass_tolerance: float = 1e-9
     _pattern: _Pattern = field(init=False, repr=False)
+    _template: sp.csr_matrix = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.sigma) or self.sigma < 0:
             raise ValueError(f"sigma must be finite and >= 0, got {self.sigma}")
         self._pattern = _build_pattern(self.grid)
+        pat, size = self._pattern, self.grid.size
+        # every A(v) shares the pattern's index arrays, read-only so that no consumer
+        # can change them under the others
+        pat.indptr.flags.writeable = False
+        pat.indices.flags.writeable = False
+        self._template = sp.csr_matrix(
+            (np.zeros(pat.nnz), pat.indices, pat.indptr), shape=(size, size)
+        )
 
     def _face_rates(self, v: VelocityField) -> tuple[np.ndarray, np.ndarray]:
         """Face rates ``(a_L / h, a_R / h)`` (1 / time), x faces then y faces."""
@@ -196,8 +206,9 @@ class FokkerPlanck:
         then the rows, in one call), equal bit for bit to :meth:`matrix_reference`.
         """
         g, pat = self.grid, self._pattern
-        data = assemble_operator(v.face_x, v.face_y, self.sigma, g.dx, g.dy, pat.indptr)
-        return sp.csr_matrix((data, pat.indices, pat.indptr), shape=(g.size,) * 2)
+        a = copy.copy(self._template)  # scipy's constructor re-checks the pattern: 40 us
+        a.data = assemble_operator(v.face_x, v.face_y, self.sigma, g.dx, g.dy, pat.indptr)
+        return a
 
     def matrix_reference(self, v: VelocityField) -> sp.csr_matrix:
         """Plain-numpy statement of :meth:`matrix` (``np.bincount`` over the entries)."""
@@ -224,19 +235,15 @@ class FokkerPlanck:
         Unconditionally stable, positivity preserving (M-matrix) and mass
         conserving for every ``dt > 0``; first order in time.
 
-        Solver (:func:`implicit_solve`). Let ``rho = dt ||A||_1`` (``||A||_1`` =
-        largest absolute column sum = twice the largest outflow rate). When ``rho``
-        is small the solution is the Neumann series ``p_next = sum_k (dt A)^k p``;
-        after ``K`` terms the remainder is at most ``rho^(K+1) / (1 - rho)
-        ||p||_1``, so ``K`` is chosen to make it below ``1e-15 ||p||_1``. Each term
-        ``(dt A)^k p`` with ``k >= 1`` has zero mass (columns of ``A`` sum to zero),
-        so the truncated series conserves mass to round-off as well. When more than
-        ``_MAX_SERIES_TERMS`` terms would be needed (``rho`` above about 0.05, e.g.
-        from n = 64 on at the paper's settings) the step uses red-black Gauss-Seidel
+        Solver (:func:`implicit_solve`): red-black Gauss-Seidel
         (:func:`red_black_solve`), whose cost is ``O(M)`` per sweep and whose sweep
         count depends on ``dt`` times the largest outflow rate only; it is positive
         and mass-conserving by construction. The sparse LU solve (:meth:`step_lu`) is
         the last resort when it would need more than ``_MAX_JACOBI_TERMS`` sweeps.
+        (Until issue 12's last round, small ``rho = dt ||A||_1`` took the truncated
+        Neumann series ``sum_k (dt A)^k p`` instead, which :func:`implicit_solve` keeps
+        for callers without the grid's shape: after ``K`` terms the remainder is at most
+        ``rho^(K+1) / (1 - rho) ||p||_1``, and each term with ``k >= 1`` has zero mass.)
 
         Raises:
             NumericalError: if ``v`` or the result is not finite, the result has a
@@ -384,35 +391,49 @@ def red_black_solve(
     return x if res <= tol else None
 
 
+def neumann_series_reference(
+    a: sp.csr_matrix, dt: float, rhs: np.ndarray, terms: int
+) -> np.ndarray:
+    """``sum_{k <= terms} (dt A)^k rhs`` by sparse products: the numpy statement of
+    :func:`harness.kernels.neumann_series` (same bits).
+    """
+    term, total = rhs, rhs.copy()
+    a_dt = a * dt
+    for _ in range(terms):
+        term = a_dt @ term
+        total += term
+    return total
+
+
 def implicit_solve(
     a: sp.csr_matrix, dt: float, rhs: np.ndarray, nx: int | None = None
 ) -> np.ndarray:
     """Solve ``(I - dt A) x = rhs`` for one right-hand side ``(M,)`` or several ``(M, c)``.
 
-    Truncated Neumann series ``sum_k (dt A)^k rhs`` when ``rho = dt ||A||_1`` allows
-    at most ``_MAX_SERIES_TERMS`` terms for a remainder below ``1e-15 ||rhs||_1``
-    (see :meth:`FokkerPlanck.step`), else red-black Gauss-Seidel on all columns at once
-    (:func:`red_black_solve`) when the grid's ``nx`` is given, the Jacobi-split series
-    (:func:`jacobi_solve`) column by column otherwise; sparse LU when either would need more than
-    ``_MAX_JACOBI_TERMS`` sweeps. No checks: estimates propagated by the filters may be
+    With the grid's ``nx`` given: red-black Gauss-Seidel on all columns at once
+    (:func:`red_black_solve`; at the paper's settings 3 to 14 sweeps from n = 30 to
+    256, and from n = 30 on two to three times faster than the series below, measured).
+    Without it: the truncated Neumann series ``sum_k (dt A)^k rhs`` (compiled,
+    :func:`harness.kernels.neumann_series`) when ``rho = dt ||A||_1`` allows at most
+    ``_MAX_SERIES_TERMS`` terms for a remainder below ``1e-15 ||rhs||_1`` (see
+    :meth:`FokkerPlanck.step`), else the Jacobi-split series (:func:`jacobi_solve`)
+    column by column. Sparse LU when the sweeps or terms would exceed
+    ``_MAX_JACOBI_TERMS``. No checks: estimates propagated by the filters may be
     negative.
     """
-    diag = a.diagonal()
-    rho = dt * 2.0 * float(np.max(np.abs(diag), initial=0.0))
-    terms = _series_terms(rho)
-    if terms <= _MAX_SERIES_TERMS:
-        term, total = rhs, rhs.copy()
-        a_dt = a * dt
-        for _ in range(terms):
-            term = a_dt @ term
-            total += term
-        return total
     a = a.tocsr()
+    diag = a.diagonal()
     if nx is not None:  # all columns in one set of sweeps
         x = red_black_solve(a, dt, rhs, nx, diag=diag)
         if x is not None:
             return x
     else:
+        rho = dt * 2.0 * float(np.max(np.abs(diag), initial=0.0))
+        terms = _series_terms(rho)
+        if terms <= _MAX_SERIES_TERMS:
+            block = np.ascontiguousarray(rhs, dtype=float).reshape(rhs.shape[0], -1)
+            total = neumann_series(a.indptr, a.indices, a.data, float(dt), block, terms)
+            return total.reshape(rhs.shape)
         cols = [rhs] if rhs.ndim == 1 else [rhs[:, c] for c in range(rhs.shape[1])]
         solved: list[np.ndarray] = []
         for col in cols:

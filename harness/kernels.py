@@ -677,3 +677,201 @@ def squared_transition(
             for k in range(c):
                 out[i, k] += f2 * d[j, k]
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def weighted_laplacian(
+    x: np.ndarray, cx: np.ndarray, cy: np.ndarray, dx: float, dy: float, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """In place ``out = G^T diag(c) G x = G_x^T (c_x o G_x x) + G_y^T (c_y o G_y x)`` on
+    ``(ny, nx)`` fields, ``G`` the grid gradient (central differences, reflecting ghost
+    cells: :meth:`harness.grid.Grid.gradient`, at least two cells per side), ``c = (c_x,
+    c_y)`` the weights on the gradient grid. Matrix-free; the sparse product
+    ``G.T @ diag(c) @ G`` is the reference.
+    """
+    ny, nx = x.shape
+    out[:, :] = 0.0
+    hx = 0.5 / dx
+    hy = 0.5 / dy
+    for j in range(ny):
+        for i in range(nx):
+            lo = max(i - 1, 0)
+            hi = min(i + 1, nx - 1)
+            # the derivative at (j, i) reads x[lo] and x[hi]; G_x^T scatters it back
+            w = cx[j, i] * (hx * (x[j, hi] - x[j, lo]))
+            out[j, hi] += hx * w
+            out[j, lo] -= hx * w
+    for j in range(ny):
+        lo = max(j - 1, 0)
+        hi = min(j + 1, ny - 1)
+        for i in range(nx):
+            w = cy[j, i] * (hy * (x[hi, i] - x[lo, i]))
+            out[hi, i] += hy * w
+            out[lo, i] -= hy * w
+
+
+@numba.njit(cache=True, nogil=True)
+def band_cholesky_solve(factor: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """``x`` with ``L L^T x = b`` for a banded Cholesky factor ``L`` stored by columns,
+    ``factor[j, k] = L[j + k, j]`` (``(M, w + 1)``, ``w`` the bandwidth): LAPACK's lower
+    band storage (``scipy.linalg.cholesky_banded(..., lower=True)``) transposed, so that
+    each column of ``L`` is contiguous. ``2 M w`` multiply-adds;
+    ``scipy.linalg.cho_solve_banded`` is the reference.
+    """
+    m, width = factor.shape
+    y = b.copy()
+    for j in range(m):  # L y = b, column by column
+        yj = y[j] / factor[j, 0]
+        y[j] = yj
+        for k in range(1, min(width, m - j)):
+            y[j + k] -= factor[j, k] * yj
+    for j in range(m - 1, -1, -1):  # L^T x = y, row by row of L^T
+        top = min(width, m - j)
+        # four partial sums in a fixed order: the loop vectorises, the bits are fixed
+        s0 = s1 = s2 = s3 = 0.0
+        k = 1
+        while k + 3 < top:
+            s0 += factor[j, k] * y[j + k]
+            s1 += factor[j, k + 1] * y[j + k + 1]
+            s2 += factor[j, k + 2] * y[j + k + 2]
+            s3 += factor[j, k + 3] * y[j + k + 3]
+            k += 4
+        while k < top:
+            s0 += factor[j, k] * y[j + k]
+            k += 1
+        y[j] = (y[j] - ((s0 + s1) + (s2 + s3))) / factor[j, 0]
+    return y
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _dot(u: np.ndarray, w: np.ndarray) -> float:  # pragma: no cover - compiled
+    """``u . w`` summed in index order (no BLAS: the same bits on every machine)."""
+    s = 0.0
+    for i in range(u.size):
+        s += u[i] * w[i]
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def _pinned_band_preconditioner(
+    r: np.ndarray, factor: np.ndarray, order: np.ndarray, out: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """``out = z - mean(z)``, ``z`` the solve of the pinned operator (cell 0 fixed) by
+    its banded factor, cells in ``order`` (``order[0] = 0``).
+    """
+    m = r.size
+    rp = np.empty(m)
+    for i in range(m):
+        rp[i] = r[order[i]]
+    rp[0] = 0.0
+    zp = band_cholesky_solve(factor, rp)
+    mean = 0.0
+    for i in range(m):
+        mean += zp[i]
+    mean /= m
+    for i in range(m):
+        out[order[i]] = zp[i] - mean
+
+
+@numba.njit(cache=True, nogil=True)
+def _off_constants_norm(r: np.ndarray) -> float:  # pragma: no cover - compiled
+    """``||r - mean(r)||``."""
+    mean = 0.0
+    for i in range(r.size):
+        mean += r[i]
+    mean /= r.size
+    s = 0.0
+    for i in range(r.size):
+        s += (r[i] - mean) ** 2
+    return np.sqrt(s)
+
+
+@numba.njit(cache=True, nogil=True)
+def weighted_poisson_pcg(
+    cx: np.ndarray,
+    cy: np.ndarray,
+    b: np.ndarray,
+    dx: float,
+    dy: float,
+    factor: np.ndarray,
+    order: np.ndarray,
+    tol: float,
+    maxiter: int,
+) -> tuple[np.ndarray, int, bool]:  # pragma: no cover - compiled
+    """Preconditioned conjugate gradients for ``G^T diag(c) G x = b`` on ``(ny, nx)``
+    fields (:func:`weighted_laplacian`) from ``x = 0``, preconditioned by the banded
+    Cholesky factor of the pinned operator of an earlier ``c``
+    (:func:`_pinned_band_preconditioner`); returns ``(x, iterations, converged)``.
+
+    The iteration of :func:`harness.filters.local._pcg` (the reference, with a sparse
+    LU), statement for statement: converged when ``||r|| <= tol ||b||``, or, when the
+    iteration stops on ``r^T z <= 0`` or ``d^T A d <= 0``, when the residual off the
+    constants is that small (the constants' part of ``b`` cannot be reduced).
+    """
+    ny, nx = b.shape
+    m = b.size
+    x = np.zeros((ny, nx))
+    r = b.copy()
+    z = np.empty((ny, nx))
+    ad = np.empty((ny, nx))
+    rf, zf, xf, adf = r.ravel(), z.ravel(), x.ravel(), ad.ravel()
+    b_norm = np.sqrt(_dot(b.ravel(), b.ravel()))
+    if b_norm == 0.0:
+        return x, 0, True
+    _pinned_band_preconditioner(rf, factor, order, zf)
+    d = z.copy()
+    df = d.ravel()
+    rz = _dot(rf, zf)
+    for it in range(1, maxiter + 1):
+        weighted_laplacian(d, cx, cy, dx, dy, ad)
+        curvature = _dot(df, adf)
+        if rz <= 0.0 or curvature <= 0.0:
+            return x, it - 1, _off_constants_norm(rf) <= tol * b_norm
+        step = rz / curvature
+        for i in range(m):
+            xf[i] += step * df[i]
+            rf[i] -= step * adf[i]
+        if np.sqrt(_dot(rf, rf)) <= tol * b_norm:
+            return x, it, True
+        _pinned_band_preconditioner(rf, factor, order, zf)
+        rz_new = _dot(rf, zf)
+        beta = rz_new / rz
+        for i in range(m):
+            df[i] = zf[i] + beta * df[i]
+        rz = rz_new
+    return x, maxiter, _off_constants_norm(rf) <= tol * b_norm
+
+
+@numba.njit(cache=True, nogil=True)
+def neumann_series(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    dt: float,
+    rhs: np.ndarray,
+    terms: int,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """``sum_{k <= terms} (dt A)^k rhs`` for the CSR arrays of ``A`` and the columns of
+    ``rhs`` ``(M, c)``: the truncated series of
+    :func:`harness.fokker_planck.implicit_solve`, each product summed over a row's
+    stored entries in order from zero, as ``scipy.sparse``'s product does (the same
+    bits as the numpy statement there).
+    """
+    m, c = rhs.shape
+    total = rhs.copy()
+    term = rhs.copy()
+    nxt = np.empty((m, c))
+    for _ in range(terms):
+        for i in range(m):
+            for k in range(c):
+                nxt[i, k] = 0.0
+            for jj in range(indptr[i], indptr[i + 1]):
+                f = data[jj] * dt
+                j = indices[jj]
+                for k in range(c):
+                    nxt[i, k] += f * term[j, k]
+        for i in range(m):
+            for k in range(c):
+                term[i, k] = nxt[i, k]
+                total[i, k] += nxt[i, k]
+    return total

@@ -81,6 +81,86 @@ def test_weighted_poisson_solves_the_normal_equations(rng):
         np.testing.assert_allclose(delta, expected, atol=1e-8 * np.abs(expected).max())
 
 
+@pytest.mark.parametrize("shape", [(9, 7), (6, 11), (4, 5)])
+def test_weighted_laplacian_is_the_sparse_product(shape, rng):
+    """The matrix-free ``G^T diag(c) G x`` equals the product with the sparse gradient
+    matrix, on grids wider than tall, taller than wide and of the smallest width (4)."""
+    from harness.kernels import weighted_laplacian
+
+    nx, ny = shape
+    g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.7)
+    gm = g.gradient_matrix
+    c = np.exp(rng.normal(size=2 * g.size))
+    x = rng.normal(size=g.size)
+    out = np.empty(g.shape)
+    weighted_laplacian(x.reshape(g.shape), c[: g.size].reshape(g.shape),
+                       c[g.size :].reshape(g.shape), g.dx, g.dy, out)  # fmt: skip
+    expected = gm.T @ (c * (gm @ x))
+    np.testing.assert_allclose(out.ravel(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_band_cholesky_solve_matches_lapack(rng):
+    """The compiled banded forward and back substitution solves the system LAPACK's
+    banded Cholesky factor is of (``cho_solve_banded`` and a dense solve agree)."""
+    import scipy.linalg as sla
+
+    from harness.kernels import band_cholesky_solve
+
+    m, w = 40, 6
+    dense = np.zeros((m, m))
+    for k in range(w + 1):  # a random symmetric band, made diagonally dominant
+        vals = rng.normal(size=m - k)
+        dense += np.diag(vals, -k) + (np.diag(vals, k) if k else 0.0)
+    dense += np.diag(np.abs(dense).sum(axis=1) + 1.0)
+    ab = np.array([np.concatenate([np.diag(dense, -k), np.zeros(k)]) for k in range(w + 1)])
+    factor = sla.cholesky_banded(ab, lower=True)
+    b = rng.normal(size=m)
+    x = band_cholesky_solve(np.ascontiguousarray(factor.T), b)
+    np.testing.assert_allclose(x, sla.cho_solve_banded((factor, True), b), rtol=1e-13)
+    np.testing.assert_allclose(dense @ x, b, rtol=0, atol=1e-12 * np.abs(b).max())
+
+
+@pytest.mark.parametrize("shape", [(9, 7), (7, 10)])
+def test_compiled_poisson_iteration_matches_the_sparse_lu_reference(shape, rng):
+    """The compiled small-grid solve (banded factor of an earlier ``c``, cells numbered
+    along the longer side) and the numpy iteration with a fresh sparse LU give the same
+    solution to the iteration's tolerance, over calls that reuse and renew the factor."""
+    nx, ny = shape
+    g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.8)
+    solver = WeightedPoisson(g, refactor_after=3)
+    gm = g.gradient_matrix
+    c = rng.uniform(0.5, 5.0, 2 * g.size)
+    for _ in range(6):
+        c = c * rng.uniform(0.7, 1.4, c.size)  # coefficients drift: the factor lags
+        b = gm.T @ (c * rng.normal(size=2 * g.size))
+        fast = solver.solve(c, b)
+        ref = solver.solve_reference(c, b)
+        assert abs(fast.mean()) <= 1e-14 * np.abs(ref).max()
+        np.testing.assert_allclose(fast, ref, rtol=0, atol=1e-8 * np.abs(ref).max())
+    assert solver.factorizations >= 2  # the lagged factor was renewed at least once
+    assert solver._factor is not None
+    assert solver._factor.shape == (g.size, 2 * min(nx, ny) + 1)  # the narrower band
+
+
+@pytest.mark.parametrize("shape", [(12, 9), (33, 40)])
+def test_band_projection_by_truncated_matrices_is_the_transform_projection(shape, rng):
+    """``Pi`` by the band's rows of the DCT matrices equals ``Pi`` by full fast
+    transforms, for one column and several, and is an orthogonal projector."""
+    from harness.filters.common import BandLimit
+
+    nx, ny = shape
+    g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.9)
+    band = BandLimit(g, 2.5 / 0.08)
+    assert not band.is_identity and band.bases[1].shape[0] < nx
+    for f in (rng.normal(size=g.size), rng.normal(size=(g.size, 3))):
+        fast, ref = band(f), band.reference(f)
+        assert fast.shape == f.shape
+        np.testing.assert_allclose(fast, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+        np.testing.assert_allclose(band(fast), fast, rtol=0, atol=1e-13 * np.abs(ref).max())
+    u, w = rng.normal(size=g.size), rng.normal(size=g.size)
+    assert abs(band(u) @ w - u @ band(w)) <= 1e-12 * np.linalg.norm(u) * np.linalg.norm(w)
+
+
 def test_local_filters_equal_reference_without_transport():
     """A = 0 (no velocity, no diffusion) and q = 0: the local covariance structure is
     exact, so both filters reproduce the dense reference."""

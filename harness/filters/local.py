@@ -86,7 +86,7 @@ import scipy.sparse.linalg as spla
 from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
 from harness.fokker_planck import FokkerPlanck, NumericalError, implicit_solve
 from harness.grid import Grid
-from harness.kernels import band_gram
+from harness.kernels import band_gram, weighted_poisson_pcg
 from harness.kernels import squared_transition as compiled_squared_transition
 from harness.velocity import VelocityField
 
@@ -124,9 +124,15 @@ class WeightedPoisson:
     ``G^T C G`` is singular only on the constants (the null space of ``G``).
     Two preconditioners:
 
-    * small grids (``M <= lu_max_cells``): a sparse LU of the operator with cell 0
-      pinned, taken from an earlier ``C`` and refactored when more than
-      ``refactor_after`` iterations were needed (the coefficients change slowly);
+    * small grids (``M <= lu_max_cells``): a banded Cholesky factor of the operator
+      with cell 0 pinned, taken from an earlier ``C`` and refactored when more than
+      ``refactor_after`` iterations were needed (the coefficients change slowly). The
+      operator couples a cell to its neighbours at distance 1 and 2 along each axis, so
+      with the cells numbered along the longer side first its bandwidth is ``2
+      min(n_x, n_y)``: a factor costs ``M w^2`` operations (LAPACK ``pbtrf``) and a
+      solve ``2 M w``. The whole iteration is one compiled call
+      (:func:`harness.kernels.weighted_poisson_pcg`, the operator matrix-free);
+      :meth:`solve_reference` is the same iteration in numpy with a sparse LU;
     * larger grids: ``S^{-1/2} (G^T G)^+ S^{-1/2}`` with ``S`` the per-cell mean of
       ``C`` over its two components; ``G^T G`` is diagonal in the orthonormal DCT-II
       basis (:meth:`harness.grid.Grid.gradient` maps cosine modes to sine modes), so
@@ -153,6 +159,12 @@ class WeightedPoisson:
         self.maxiter = maxiter
         self.lu_max_cells = lu_max_cells
         self._lu: Callable[[np.ndarray], np.ndarray] | None = None
+        self._factor: np.ndarray | None = None
+        cells = np.arange(grid.size)
+        # number the cells along the longer side first: the band is 2 min(nx, ny) wide
+        self._order = cells if grid.nx <= grid.ny else cells.reshape(grid.shape).T.ravel()
+        self._position = np.empty_like(cells)
+        self._position[self._order] = cells
         self.iterations = 0
         self.factorizations = 0
         eig_x = _gradient_eigenvalues(grid.nx, grid.dx)
@@ -184,6 +196,23 @@ class WeightedPoisson:
 
         return apply
 
+    def _band_factor(self, c: np.ndarray) -> np.ndarray:
+        """Banded Cholesky factor of ``G^T diag(c) G`` with cell 0 pinned (its row and
+        column replaced by the unit vector), cells in ``self._order``, in the layout of
+        :func:`harness.kernels.band_cholesky_solve`.
+        """
+        op = (self.gt @ sp.diags(c) @ self.g).tocoo()
+        rows, cols = self._position[op.row], self._position[op.col]
+        keep = (rows >= cols) & (op.row != 0) & (op.col != 0)
+        rows, cols, data = rows[keep], cols[keep], op.data[keep]
+        width = int(np.max(rows - cols, initial=0))
+        ab = np.zeros((width + 1, self.grid.size))
+        np.add.at(ab, (rows - cols, cols), data)
+        ab[0, 0] = 1.0
+        factor = sla.cholesky_banded(ab, lower=True, check_finite=False)
+        self.factorizations += 1
+        return np.ascontiguousarray(factor.T)
+
     def solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The zero-mean solution of ``G^T diag(c) G delta = b``.
 
@@ -203,21 +232,30 @@ class WeightedPoisson:
         return unit * self._solve(c, b / unit)
 
     def _solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
-        m = self.grid.size
-        op = (self.gt @ sp.diags(c) @ self.g).tocsr()
+        m, g = self.grid.size, self.grid
         if m <= self.lu_max_cells:
-            if self._lu is None:
-                self._lu = self._lu_preconditioner(op)
-            delta, its, converged = _pcg(op, self._lu, b, self.tol)
+            cx, cy = c[:m].reshape(g.shape), c[m:].reshape(g.shape)
+            rhs = b.reshape(g.shape)
+
+            def iterate(factor: np.ndarray) -> tuple[np.ndarray, int, bool]:
+                return weighted_poisson_pcg(
+                    cx, cy, rhs, g.dx, g.dy, factor, self._order, self.tol, _PCG_MAXITER
+                )
+
+            if self._factor is None:
+                self._factor = self._band_factor(c)
+            delta, its, converged = iterate(self._factor)
             if not converged:  # the lagged factor may be stale: once more with a fresh one
-                self._lu = self._lu_preconditioner(op)
-                delta, its, converged = _pcg(op, self._lu, b, self.tol)
+                self._factor = self._band_factor(c)
+                delta, its, converged = iterate(self._factor)
             elif its > self.refactor_after:
-                self._lu = self._lu_preconditioner(op)
+                self._factor = self._band_factor(c)
             self.iterations = its
             if not converged:
                 raise NumericalError("gradient update: the weighted Poisson solve did not converge")
+            delta = delta.ravel()
             return delta - delta.mean()
+        op = (self.gt @ sp.diags(c) @ self.g).tocsr()
         scale = 1.0 / np.sqrt(0.5 * (c[:m] + c[m:]))
 
         def precondition(r: np.ndarray) -> np.ndarray:
@@ -227,6 +265,16 @@ class WeightedPoisson:
         if not converged:
             delta, its, converged = _pcg(op, self._lu_preconditioner(op), b, self.tol)
         self.iterations = its
+        if not converged:
+            raise NumericalError("gradient update: the weighted Poisson solve did not converge")
+        return delta - delta.mean()
+
+    def solve_reference(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """:meth:`solve` by the numpy iteration :func:`_pcg` preconditioned by a fresh
+        sparse LU of the pinned operator (the small grids' path before it was compiled).
+        """
+        op = (self.gt @ sp.diags(c) @ self.g).tocsr()
+        delta, _, converged = _pcg(op, self._lu_preconditioner(op), b, self.tol)
         if not converged:
             raise NumericalError("gradient update: the weighted Poisson solve did not converge")
         return delta - delta.mean()
@@ -273,6 +321,7 @@ class BandPoisson:
 
     def __init__(self, grid: Grid, band: BandLimit) -> None:
         self.grid = grid
+        self.bases = band.bases
         rows, cols = np.nonzero(band.mask)
         varying = (rows > 0) | (cols > 0)
         self.a, self.b = cols[varying], rows[varying]  # x and y mode numbers
@@ -369,7 +418,8 @@ class BandPoisson:
     def solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
         """``B a`` with ``(B^T G^T diag(c) G B) a = B^T b``: zero mean, in the band."""
         g = self.grid
-        rhs = sfft.dctn(b.reshape(g.shape), type=2, norm="ortho")[self.b, self.a]
+        c_y, c_x = self.bases  # the band's rows of the orthonormal DCT-II matrices
+        rhs = (c_y @ b.reshape(g.shape) @ c_x.T)[self.b, self.a]
         # The row-major upper triangle is the column-major lower one: LAPACK's Cholesky
         # (potrf) and its solve (potrs) read it in place, without a copy or mirroring.
         lower = self._upper(c).T
@@ -379,9 +429,9 @@ class BandPoisson:
         coef, info = sla.lapack.dpotrs(factor, rhs, lower=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"band solve failed ({info})")
-        full = np.zeros(g.shape)
+        full = np.zeros((c_y.shape[0], c_x.shape[0]))
         full[self.b, self.a] = coef
-        return sfft.idctn(full, type=2, norm="ortho").ravel()
+        return (c_y.T @ full @ c_x).ravel()
 
 
 def power_of_two_scale(b: np.ndarray) -> float:
@@ -410,8 +460,12 @@ def _gradient_eigenvalues(n: int, h: float) -> np.ndarray:
     return np.sum((_gradient_1d(n, h) @ basis) ** 2, axis=0)
 
 
+_PCG_MAXITER = 200
+"""Iterations after which conjugate gradients give up."""
+
+
 def _pcg(
-    op: sp.csr_matrix, precond, b: np.ndarray, tol: float, maxiter: int = 200
+    op: sp.csr_matrix, precond, b: np.ndarray, tol: float, maxiter: int = _PCG_MAXITER
 ) -> tuple[np.ndarray, int, bool]:
     """Preconditioned conjugate gradients from zero for the operator ``G^T diag(c) G``,
     singular on the constants; returns ``(x, iterations, converged)``, converged when
