@@ -209,7 +209,10 @@ class WeightedPoisson:
         ab = np.zeros((width + 1, self.grid.size))
         np.add.at(ab, (rows - cols, cols), data)
         ab[0, 0] = 1.0
-        factor = sla.cholesky_banded(ab, lower=True, check_finite=False)
+        try:
+            factor = sla.cholesky_banded(ab, lower=True, check_finite=False)
+        except np.linalg.LinAlgError as err:
+            raise NumericalError(f"gradient update: the operator is not definite ({err})") from err
         self.factorizations += 1
         return np.ascontiguousarray(factor.T)
 
