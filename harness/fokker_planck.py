@@ -30,11 +30,11 @@ Properties the tests check:
 
 The plain reference :func:`rate` computes ``A(v) p`` face by face; the fast path
 :meth:`FokkerPlanck.matrix` fills a CSR matrix with a precomputed pattern. A test
-checks they agree. The implicit step solves ``(I - dt A) p_next = p`` by a
-Neumann series (small ``dt ||A||``) or red-black Gauss-Seidel with an exact mass
-correction (:func:`red_black_solve`, cost ``O(M)`` per sweep; the Jacobi-split series
-:func:`jacobi_solve`, with twice the sweeps, serves operators without a grid), with
-the sparse LU solve (:meth:`FokkerPlanck.step_lu`) as reference and last resort.
+checks they agree. The implicit step solves ``(I - dt A) p_next = p`` by red-black
+Gauss-Seidel with an exact mass correction (:func:`red_black_solve`, cost ``O(M)`` per
+sweep; operators given without the grid's shape take a Neumann series when ``dt ||A||``
+is small, else the Jacobi-split series :func:`jacobi_solve`, with twice the sweeps),
+with the sparse LU solve (:meth:`FokkerPlanck.step_lu`) as reference and last resort.
 """
 
 from __future__ import annotations
@@ -240,7 +240,7 @@ class FokkerPlanck:
         count depends on ``dt`` times the largest outflow rate only; it is positive
         and mass-conserving by construction. The sparse LU solve (:meth:`step_lu`) is
         the last resort when it would need more than ``_MAX_JACOBI_TERMS`` sweeps.
-        (Until issue 12's last round, small ``rho = dt ||A||_1`` took the truncated
+        (Before issue 12's fourth round, small ``rho = dt ||A||_1`` took the truncated
         Neumann series ``sum_k (dt A)^k p`` instead, which :func:`implicit_solve` keeps
         for callers without the grid's shape: after ``K`` terms the remainder is at most
         ``rho^(K+1) / (1 - rho) ||p||_1``, and each term with ``k >= 1`` has zero mass.)
@@ -269,8 +269,9 @@ class FokkerPlanck:
 
 
 _MAX_SERIES_TERMS = 12
-"""Above this many Neumann-series terms a sparse LU solve is cheaper (measured
-with `make bench` at n = 30 to 128)."""
+"""Most Neumann-series terms :func:`implicit_solve` takes for an operator given without
+the grid's shape; above, the Jacobi-split series (chosen when the series was the small
+grids' step: a sparse LU was cheaper above it, `make bench` at n = 30 to 128)."""
 
 
 def _series_terms(rho: float) -> int:
@@ -411,8 +412,9 @@ def implicit_solve(
     """Solve ``(I - dt A) x = rhs`` for one right-hand side ``(M,)`` or several ``(M, c)``.
 
     With the grid's ``nx`` given: red-black Gauss-Seidel on all columns at once
-    (:func:`red_black_solve`; at the paper's settings 3 to 14 sweeps from n = 30 to
-    256, and from n = 30 on two to three times faster than the series below, measured).
+    (:func:`red_black_solve`; 5, 9 and 14 sweeps at n = 30, 128 and 256 on the
+    benchmarks' mid-run state, and at n = 30 two to three times faster than the series
+    below, measured).
     Without it: the truncated Neumann series ``sum_k (dt A)^k rhs`` (compiled,
     :func:`harness.kernels.neumann_series`) when ``rho = dt ||A||_1`` allows at most
     ``_MAX_SERIES_TERMS`` terms for a remainder below ``1e-15 ||rhs||_1`` (see
