@@ -718,8 +718,15 @@ def band_cholesky_solve(factor: np.ndarray, b: np.ndarray) -> np.ndarray:  # pra
     each column of ``L`` is contiguous. ``2 M w`` multiply-adds;
     ``scipy.linalg.cho_solve_banded`` is the reference.
     """
-    m, width = factor.shape
     y = b.copy()
+    _band_cholesky_inplace(factor, y)
+    return y
+
+
+@numba.njit(cache=True, nogil=True)
+def _band_cholesky_inplace(factor: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover
+    """:func:`band_cholesky_solve` overwriting its right-hand side ``y`` with ``x``."""
+    m, width = factor.shape
     for j in range(m):  # L y = b, column by column
         yj = y[j] / factor[j, 0]
         y[j] = yj
@@ -740,7 +747,6 @@ def band_cholesky_solve(factor: np.ndarray, b: np.ndarray) -> np.ndarray:  # pra
             s0 += factor[j, k] * y[j + k]
             k += 1
         y[j] = (y[j] - ((s0 + s1) + (s2 + s3))) / factor[j, 0]
-    return y
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -754,17 +760,16 @@ def _dot(u: np.ndarray, w: np.ndarray) -> float:  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True)
 def _pinned_band_preconditioner(
-    r: np.ndarray, factor: np.ndarray, order: np.ndarray, out: np.ndarray
+    r: np.ndarray, factor: np.ndarray, order: np.ndarray, out: np.ndarray, zp: np.ndarray
 ) -> None:  # pragma: no cover - compiled
     """``out = z - mean(z)``, ``z`` the solve of the pinned operator (cell 0 fixed) by
-    its banded factor, cells in ``order`` (``order[0] = 0``).
+    its banded factor, cells in ``order`` (``order[0] = 0``); ``zp`` is work space.
     """
     m = r.size
-    rp = np.empty(m)
     for i in range(m):
-        rp[i] = r[order[i]]
-    rp[0] = 0.0
-    zp = band_cholesky_solve(factor, rp)
+        zp[i] = r[order[i]]
+    zp[0] = 0.0
+    _band_cholesky_inplace(factor, zp)
     mean = 0.0
     for i in range(m):
         mean += zp[i]
@@ -815,10 +820,11 @@ def weighted_poisson_pcg(
     z = np.empty((ny, nx))
     ad = np.empty((ny, nx))
     rf, zf, xf, adf = r.ravel(), z.ravel(), x.ravel(), ad.ravel()
+    work = np.empty(m)
     b_norm = np.sqrt(_dot(b.ravel(), b.ravel()))
     if b_norm == 0.0:
         return x, 0, True
-    _pinned_band_preconditioner(rf, factor, order, zf)
+    _pinned_band_preconditioner(rf, factor, order, zf, work)
     d = z.copy()
     df = d.ravel()
     rz = _dot(rf, zf)
@@ -833,7 +839,7 @@ def weighted_poisson_pcg(
             rf[i] -= step * adf[i]
         if np.sqrt(_dot(rf, rf)) <= tol * b_norm:
             return x, it, True
-        _pinned_band_preconditioner(rf, factor, order, zf)
+        _pinned_band_preconditioner(rf, factor, order, zf, work)
         rz_new = _dot(rf, zf)
         beta = rz_new / rz
         for i in range(m):

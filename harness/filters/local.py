@@ -40,9 +40,10 @@ stays in the range of the grid gradient ``G`` and ``q_{n+1} = G F I(q_n)`` becom
 the last being the exact posterior mean for that prior: a weighted least-squares
 fit of the innovation by a gradient field, i.e. a variable-coefficient Poisson
 problem. On grids up to ``lu_max_cells`` (1024) cells it is solved by conjugate
-gradients preconditioned with a sparse LU of the same operator from an earlier step
-(the coefficients change slowly), refactored when the iteration count grows, and the
-result is projected on the band (below). On finer grids with a band limit it is solved
+gradients preconditioned with a banded Cholesky factor of the same operator from an
+earlier step (the coefficients change slowly), refactored when the iteration count
+grows, in one compiled call (:class:`WeightedPoisson`), and the result is projected on
+the band (below). On finer grids with a band limit it is solved
 within the band (:class:`BandPoisson`): the exact posterior mean of the band-limited
 state, a dense system of the band's ``K`` modes (about 330 at the paper's ``h``) whose
 cost does not grow with the grid (issue 12: 50 to 100 preconditioned iterations on the
