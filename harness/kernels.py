@@ -711,42 +711,108 @@ def weighted_laplacian(
 
 
 @numba.njit(cache=True, nogil=True)
+def pinned_band_operator(
+    cx: np.ndarray, cy: np.ndarray, dx: float, dy: float, position: np.ndarray, width: int
+) -> np.ndarray:  # pragma: no cover - compiled
+    """``G^T diag(c) G`` (:func:`weighted_laplacian`) in LAPACK's lower band storage,
+    ``ab[r - q, q] = A[r, q]`` for ``r >= q`` (``(width + 1, M)``), with the cells
+    renumbered by ``position`` and cell 0 (at position 0) pinned: its row and column
+    replaced by the unit vector. The input of ``scipy.linalg.cholesky_banded(ab,
+    lower=True)``; the sparse product ``G.T @ diag(c) @ G`` is the reference.
+
+    Each gradient cell's derivative ``h (x_hi - x_lo)`` (``h = 1 / (2 dx)``) adds
+    ``c h^2`` to the diagonal entries of ``lo`` and ``hi`` and ``-c h^2`` to their
+    coupling.
+    """
+    ny, nx = cx.shape
+    m = nx * ny
+    ab = np.zeros((width + 1, m))
+    for axis in range(2):
+        c = cx if axis == 0 else cy
+        h = 0.5 / dx if axis == 0 else 0.5 / dy
+        h2 = h * h
+        for j in range(ny):
+            for i in range(nx):
+                if axis == 0:
+                    lo = j * nx + max(i - 1, 0)
+                    hi = j * nx + min(i + 1, nx - 1)
+                else:
+                    lo = max(j - 1, 0) * nx + i
+                    hi = min(j + 1, ny - 1) * nx + i
+                w = c[j, i] * h2
+                a = position[lo]
+                b = position[hi]
+                ab[0, a] += w
+                ab[0, b] += w
+                ab[abs(a - b), min(a, b)] -= w
+    for k in range(width + 1):  # pin cell 0: its column (its row holds only the diagonal)
+        ab[k, 0] = 0.0
+    ab[0, 0] = 1.0
+    return ab
+
+
+@numba.njit(cache=True, nogil=True)
+def band_rows(factor: np.ndarray) -> np.ndarray:  # pragma: no cover - compiled
+    """The rows of a banded Cholesky factor ``L`` stored by columns (``factor[j, k] =
+    L[j + k, j]``, ``(M, w + 1)``), each row's band left of the diagonal reversed into
+    place: ``rows[j, t] = L[j, j - w + t]`` for ``t < w`` (zero where ``j - w + t <
+    0``), so that the back substitution reads a contiguous row per column of ``L^T``.
+    """
+    m, width = factor.shape
+    w = width - 1
+    rows = np.zeros((m, w))
+    for j in range(m):
+        for k in range(1, min(width, m - j)):
+            rows[j + k, w - k] = factor[j, k]
+    return rows
+
+
+@numba.njit(cache=True, nogil=True)
 def band_cholesky_solve(factor: np.ndarray, b: np.ndarray) -> np.ndarray:  # pragma: no cover
     """``x`` with ``L L^T x = b`` for a banded Cholesky factor ``L`` stored by columns,
     ``factor[j, k] = L[j + k, j]`` (``(M, w + 1)``, ``w`` the bandwidth): LAPACK's lower
     band storage (``scipy.linalg.cholesky_banded(..., lower=True)``) transposed, so that
     each column of ``L`` is contiguous. ``2 M w`` multiply-adds;
-    ``scipy.linalg.cho_solve_banded`` is the reference.
+    ``scipy.linalg.cho_solve_banded`` is the reference. The iteration that applies one
+    factor many times keeps :func:`band_rows` and the diagonal's reciprocals
+    (:func:`_band_cholesky_inplace`).
     """
     y = b.copy()
-    _band_cholesky_inplace(factor, y)
+    _band_cholesky_inplace(factor, band_rows(factor), 1.0 / factor[:, 0], y)
     return y
 
 
-@numba.njit(cache=True, nogil=True)
-def _band_cholesky_inplace(factor: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover
-    """:func:`band_cholesky_solve` overwriting its right-hand side ``y`` with ``x``."""
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _band_cholesky_inplace(
+    factor: np.ndarray, rows: np.ndarray, inv_diag: np.ndarray, y: np.ndarray
+) -> None:  # pragma: no cover - compiled
+    """:func:`band_cholesky_solve` overwriting its right-hand side ``y`` with ``x``.
+
+    Both substitutions run by columns (``L y = b`` along the columns of ``L``, ``L^T x
+    = y`` along the columns of ``L^T``, i.e. :func:`band_rows`): each step scales one
+    entry by its diagonal's reciprocal ``inv_diag`` and subtracts a contiguous segment,
+    a loop without a reduction that compiles to vector instructions (measured at
+    ``M = 900``, ``w = 60``: 23 us for both against 47 us for the column-then-dot
+    form with divisions).
+    """
     m, width = factor.shape
-    for j in range(m):  # L y = b, column by column
-        yj = y[j] / factor[j, 0]
+    w = width - 1
+    for j in range(m):  # L y = b
+        yj = y[j] * inv_diag[j]
         y[j] = yj
-        for k in range(1, min(width, m - j)):
-            y[j + k] -= factor[j, k] * yj
-    for j in range(m - 1, -1, -1):  # L^T x = y, row by row of L^T
         top = min(width, m - j)
-        # four partial sums in a fixed order: the loop vectorises, the bits are fixed
-        s0 = s1 = s2 = s3 = 0.0
-        k = 1
-        while k + 3 < top:
-            s0 += factor[j, k] * y[j + k]
-            s1 += factor[j, k + 1] * y[j + k + 1]
-            s2 += factor[j, k + 2] * y[j + k + 2]
-            s3 += factor[j, k + 3] * y[j + k + 3]
-            k += 4
-        while k < top:
-            s0 += factor[j, k] * y[j + k]
-            k += 1
-        y[j] = (y[j] - ((s0 + s1) + (s2 + s3))) / factor[j, 0]
+        col = factor[j, 1:top]
+        seg = y[j + 1 : j + top]
+        for k in range(top - 1):
+            seg[k] -= col[k] * yj
+    for j in range(m - 1, -1, -1):  # L^T x = y
+        xj = y[j] * inv_diag[j]
+        y[j] = xj
+        lo = max(w - j, 0)
+        row = rows[j, lo:w]
+        seg = y[j - w + lo : j]
+        for t in range(w - lo):
+            seg[t] -= row[t] * xj
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -760,16 +826,23 @@ def _dot(u: np.ndarray, w: np.ndarray) -> float:  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True)
 def _pinned_band_preconditioner(
-    r: np.ndarray, factor: np.ndarray, order: np.ndarray, out: np.ndarray, zp: np.ndarray
+    r: np.ndarray,
+    factor: np.ndarray,
+    rows: np.ndarray,
+    inv_diag: np.ndarray,
+    order: np.ndarray,
+    out: np.ndarray,
+    zp: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
     """``out = z - mean(z)``, ``z`` the solve of the pinned operator (cell 0 fixed) by
-    its banded factor, cells in ``order`` (``order[0] = 0``); ``zp`` is work space.
+    its banded factor (with its :func:`band_rows` and diagonal reciprocals), cells in
+    ``order`` (``order[0] = 0``); ``zp`` is work space.
     """
     m = r.size
     for i in range(m):
         zp[i] = r[order[i]]
     zp[0] = 0.0
-    _band_cholesky_inplace(factor, zp)
+    _band_cholesky_inplace(factor, rows, inv_diag, zp)
     mean = 0.0
     for i in range(m):
         mean += zp[i]
@@ -799,14 +872,17 @@ def weighted_poisson_pcg(
     dx: float,
     dy: float,
     factor: np.ndarray,
+    rows: np.ndarray,
+    inv_diag: np.ndarray,
     order: np.ndarray,
     tol: float,
     maxiter: int,
 ) -> tuple[np.ndarray, int, bool]:  # pragma: no cover - compiled
     """Preconditioned conjugate gradients for ``G^T diag(c) G x = b`` on ``(ny, nx)``
     fields (:func:`weighted_laplacian`) from ``x = 0``, preconditioned by the banded
-    Cholesky factor of the pinned operator of an earlier ``c``
-    (:func:`_pinned_band_preconditioner`); returns ``(x, iterations, converged)``.
+    Cholesky factor of the pinned operator of an earlier ``c``, with its
+    :func:`band_rows` and diagonal reciprocals (:func:`_pinned_band_preconditioner`);
+    returns ``(x, iterations, converged)``.
 
     The iteration of :func:`harness.filters.local._pcg` (the reference, with a sparse
     LU), statement for statement: converged when ``||r|| <= tol ||b||``, or, when the
@@ -824,7 +900,7 @@ def weighted_poisson_pcg(
     b_norm = np.sqrt(_dot(b.ravel(), b.ravel()))
     if b_norm == 0.0:
         return x, 0, True
-    _pinned_band_preconditioner(rf, factor, order, zf, work)
+    _pinned_band_preconditioner(rf, factor, rows, inv_diag, order, zf, work)
     d = z.copy()
     df = d.ravel()
     rz = _dot(rf, zf)
@@ -839,7 +915,7 @@ def weighted_poisson_pcg(
             rf[i] -= step * adf[i]
         if np.sqrt(_dot(rf, rf)) <= tol * b_norm:
             return x, it, True
-        _pinned_band_preconditioner(rf, factor, order, zf, work)
+        _pinned_band_preconditioner(rf, factor, rows, inv_diag, order, zf, work)
         rz_new = _dot(rf, zf)
         beta = rz_new / rz
         for i in range(m):
@@ -881,3 +957,26 @@ def neumann_series(
                 term[i, k] = nxt[i, k]
                 total[i, k] += nxt[i, k]
     return total
+
+
+@numba.njit(cache=True, nogil=True)
+def density_summary(
+    before: np.ndarray, after: np.ndarray
+) -> tuple[bool, float, float, float, float]:  # pragma: no cover - compiled
+    """``(all of after finite, sum before, sum after, min after, max |before|)`` in one
+    pass over two flat arrays: what :func:`harness.fokker_planck.check_density` checks.
+    """
+    finite = True
+    s0 = 0.0
+    s1 = 0.0
+    low = np.inf
+    top = 0.0
+    for i in range(after.size):
+        a = after[i]
+        finite &= np.isfinite(a)
+        s1 += a
+        low = min(low, a)
+    for i in range(before.size):
+        s0 += before[i]
+        top = max(top, abs(before[i]))
+    return finite, s0, s1, low, top

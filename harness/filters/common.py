@@ -251,10 +251,21 @@ class BandLimit:
         if self.is_identity:
             return np.array(f, dtype=float)
         c_y, c_x = self.bases
-        fields = np.moveaxis(np.asarray(f, dtype=float).reshape(g.ny, g.nx, -1), 2, 0)
+        f = np.asarray(f, dtype=float)
+        if f.ndim == 1:  # one field: the same products without the stacking
+            coef = c_y @ f.reshape(g.ny, g.nx) @ c_x.T
+            coef *= self._band_mask
+            return (c_y.T @ coef @ c_x).ravel()
+        fields = np.moveaxis(f.reshape(g.ny, g.nx, -1), 2, 0)
         coef = c_y @ fields @ c_x.T
-        coef *= self.mask[: c_y.shape[0], : c_x.shape[0]]
+        coef *= self._band_mask
         return np.moveaxis(c_y.T @ coef @ c_x, 0, 2).reshape(f.shape)
+
+    @cached_property
+    def _band_mask(self) -> np.ndarray:
+        """:attr:`mask` on the rows and columns of :attr:`bases`."""
+        c_y, c_x = self.bases
+        return self.mask[: c_y.shape[0], : c_x.shape[0]]
 
     def reference(self, f: np.ndarray) -> np.ndarray:
         """``Pi f`` by the full fast transforms (the statement of :meth:`__call__`)."""

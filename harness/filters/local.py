@@ -87,7 +87,7 @@ import scipy.sparse.linalg as spla
 from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
 from harness.fokker_planck import FokkerPlanck, NumericalError, implicit_solve
 from harness.grid import Grid
-from harness.kernels import band_gram, weighted_poisson_pcg
+from harness.kernels import band_gram, band_rows, pinned_band_operator, weighted_poisson_pcg
 from harness.kernels import squared_transition as compiled_squared_transition
 from harness.velocity import VelocityField
 
@@ -161,11 +161,15 @@ class WeightedPoisson:
         self.lu_max_cells = lu_max_cells
         self._lu: Callable[[np.ndarray], np.ndarray] | None = None
         self._factor: np.ndarray | None = None
+        self._factor_rows = np.empty((0, 0))  # band_rows(self._factor)
+        self._factor_inv = np.empty(0)  # 1 / diagonal of self._factor
         cells = np.arange(grid.size)
         # number the cells along the longer side first: the band is 2 min(nx, ny) wide
         self._order = cells if grid.nx <= grid.ny else cells.reshape(grid.shape).T.ravel()
         self._position = np.empty_like(cells)
         self._position[self._order] = cells
+        # the band's width in that ordering (2 min(nx, ny) from 3 cells per side on)
+        self._width = self._band_operator_reference(np.ones(2 * grid.size)).shape[0] - 1
         self.iterations = 0
         self.factorizations = 0
         eig_x = _gradient_eigenvalues(grid.nx, grid.dx)
@@ -200,22 +204,44 @@ class WeightedPoisson:
     def _band_factor(self, c: np.ndarray) -> np.ndarray:
         """Banded Cholesky factor of ``G^T diag(c) G`` with cell 0 pinned (its row and
         column replaced by the unit vector), cells in ``self._order``, in the layout of
-        :func:`harness.kernels.band_cholesky_solve`.
+        :func:`harness.kernels.band_cholesky_solve`: the band assembled by
+        :func:`harness.kernels.pinned_band_operator` (:meth:`_band_operator_reference`
+        states it with the sparse product), factored by LAPACK ``pbtrf``.
         """
-        op = (self.gt @ sp.diags(c) @ self.g).tocoo()
-        rows, cols = self._position[op.row], self._position[op.col]
-        keep = (rows >= cols) & (op.row != 0) & (op.col != 0)
-        rows, cols, data = rows[keep], cols[keep], op.data[keep]
-        width = int(np.max(rows - cols, initial=0))
-        ab = np.zeros((width + 1, self.grid.size))
-        np.add.at(ab, (rows - cols, cols), data)
-        ab[0, 0] = 1.0
+        g, m = self.grid, self.grid.size
+        cx, cy = c[:m].reshape(g.shape), c[m:].reshape(g.shape)
+        ab = pinned_band_operator(cx, cy, g.dx, g.dy, self._position, self._width)
         try:
             factor = sla.cholesky_banded(ab, lower=True, check_finite=False)
         except np.linalg.LinAlgError as err:
             raise NumericalError(f"gradient update: the operator is not definite ({err})") from err
         self.factorizations += 1
         return np.ascontiguousarray(factor.T)
+
+    def _band_operator_reference(self, c: np.ndarray, width: int | None = None) -> np.ndarray:
+        """The pinned operator's lower band storage from the sparse product ``G^T diag(c)
+        G`` (numpy; the statement of :func:`harness.kernels.pinned_band_operator`);
+        ``width`` defaults to the widest coupling in that ordering.
+        """
+        op = (self.gt @ sp.diags(c) @ self.g).tocoo()
+        rows, cols = self._position[op.row], self._position[op.col]
+        keep = (rows >= cols) & (op.row != 0) & (op.col != 0)
+        rows, cols, data = rows[keep], cols[keep], op.data[keep]
+        if width is None:
+            width = int(np.max(rows - cols, initial=0))
+        ab = np.zeros((width + 1, self.grid.size))
+        np.add.at(ab, (rows - cols, cols), data)
+        ab[0, 0] = 1.0
+        return ab
+
+    def _refactor(self, c: np.ndarray) -> None:
+        """The small grids' preconditioner from ``c``: :meth:`_band_factor`, its rows
+        (:func:`harness.kernels.band_rows`) and its diagonal's reciprocals.
+        """
+        factor = self._band_factor(c)
+        self._factor_rows = band_rows(factor)
+        self._factor_inv = 1.0 / factor[:, 0]
+        self._factor = factor
 
     def solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The zero-mean solution of ``G^T diag(c) G delta = b``.
@@ -241,19 +267,21 @@ class WeightedPoisson:
             cx, cy = c[:m].reshape(g.shape), c[m:].reshape(g.shape)
             rhs = b.reshape(g.shape)
 
-            def iterate(factor: np.ndarray) -> tuple[np.ndarray, int, bool]:
+            def iterate() -> tuple[np.ndarray, int, bool]:
+                assert self._factor is not None
                 return weighted_poisson_pcg(
-                    cx, cy, rhs, g.dx, g.dy, factor, self._order, self.tol, _PCG_MAXITER
-                )
+                    cx, cy, rhs, g.dx, g.dy, self._factor, self._factor_rows,
+                    self._factor_inv, self._order, self.tol, _PCG_MAXITER,
+                )  # fmt: skip
 
             if self._factor is None:
-                self._factor = self._band_factor(c)
-            delta, its, converged = iterate(self._factor)
+                self._refactor(c)
+            delta, its, converged = iterate()
             if not converged:  # the lagged factor may be stale: once more with a fresh one
-                self._factor = self._band_factor(c)
-                delta, its, converged = iterate(self._factor)
+                self._refactor(c)
+                delta, its, converged = iterate()
             elif its > self.refactor_after:
-                self._factor = self._band_factor(c)
+                self._refactor(c)
             self.iterations = its
             if not converged:
                 raise NumericalError("gradient update: the weighted Poisson solve did not converge")
