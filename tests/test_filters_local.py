@@ -397,3 +397,66 @@ def test_fast_filters_with_the_band_solve_track_reference():
     c = compare_filters(n=34, steps=150, seed=2)
     worst_p, worst_q = c.ratios(skip=1)
     assert worst_p < 0.1 and worst_q < 0.1, (worst_p, worst_q)
+
+
+def test_band_transition_variance_is_the_dense_congruence(rng):
+    """The compiled variance prediction with the band's correlations equals
+    ``diag(F1 S R S F1^T)`` with the dense correlation matrices of the band-limited
+    white field and of its gradient components, computed from the mode fields."""
+    from harness.filters.common import BandLimit, band_covariance_dense
+    from harness.filters.local import transition_variance, transition_variance_reference
+
+    g = Grid(14, 12, 0.0, 1.0, 0.0, 0.9)
+    band = BandLimit(g, 25.0)
+    assert not band.is_identity
+    ny, nx = g.shape
+    v = VelocityField(
+        rng.normal(scale=0.3, size=(2, ny, nx)),
+        rng.normal(scale=0.3, size=(ny, nx - 1)),
+        rng.normal(scale=0.3, size=(ny - 1, nx)),
+    )
+    a = FokkerPlanck(g, 1e-3).matrix(v)
+    d = rng.uniform(0.5, 2.0, (g.size, 3))
+    dense = []
+    for k in range(3):
+        cov = band_covariance_dense(band, k)
+        s = np.sqrt(np.diag(cov))
+        dense.append(cov / np.outer(s, s))
+    fast = transition_variance(a, 0.05, d, band.correlations(), nx)
+    np.testing.assert_allclose(fast, transition_variance_reference(a, 0.05, d, dense), rtol=1e-13)
+    # one correlation for every column (the density's)
+    one = transition_variance(a, 0.05, d, band.correlations()[:1], nx)
+    np.testing.assert_allclose(
+        one, transition_variance_reference(a, 0.05, d, dense[:1]), rtol=1e-13
+    )
+    # without the band it is the white congruence (F1 o F1) d
+    np.testing.assert_array_equal(
+        transition_variance(a, 0.05, d, None, nx), squared_transition(a, 0.05, d)
+    )
+
+
+def test_band_limited_variance_decays_at_the_band_rate_on_every_grid():
+    """Under pure diffusion a band-limited white field's variance decays by about
+    ``dt sigma kappa_c^2`` per step (the mean of ``2 dt sigma |kappa|^2`` over the
+    disc), whatever the grid; the white per-cell model by ``1 - (1 - 4 r)^2 - 4 r^2``
+    with ``r = dt sigma / dx^2``, about four times faster for each halving of dx."""
+    from harness.filters.common import BandLimit
+    from harness.filters.local import transition_variance
+
+    sigma, dt, cutoff = 5e-5, 0.01, 2.5 / 0.04
+    band_rate, white_rate = {}, {}
+    for n in (64, 128):
+        g = Grid.square(n)
+        band = BandLimit(g, cutoff)
+        a = FokkerPlanck(g, sigma).matrix(VelocityField.zeros(g))
+        d = np.ones((g.size, 1))
+        inner = np.zeros(g.shape, dtype=bool)
+        inner[n // 4 : 3 * n // 4, n // 4 : 3 * n // 4] = True
+        out = transition_variance(a, dt, d, band.correlations()[:1], n).reshape(g.shape)
+        white = squared_transition(a, dt, d).reshape(g.shape)
+        band_rate[n] = float(np.mean(1.0 - out[inner]))
+        white_rate[n] = float(np.mean(1.0 - white[inner]))
+        assert band_rate[n] == pytest.approx(dt * sigma * cutoff**2, rel=0.08)
+        r = dt * sigma * n**2  # dt sigma / dx^2: interior rows of F1 are 1 - 4 r and r
+        assert white_rate[n] == pytest.approx(1.0 - ((1 - 4 * r) ** 2 + 4 * r**2), rel=1e-9)
+    assert band_rate[128] == pytest.approx(band_rate[64], rel=0.05)

@@ -267,6 +267,15 @@ class BandLimit:
         c_y, c_x = self.bases
         return self.mask[: c_y.shape[0], : c_x.shape[0]]
 
+    def correlations(self) -> np.ndarray:
+        """Correlations of a band-limited white field between cells a 5-point
+        transition couples: ``rho[k, o, i]`` for the density (``k = 0``) and the two
+        gradient components (``k = 1, 2``: the fields ``G_x Pi w``, ``G_y Pi w``) between
+        cell ``i`` and cell ``i + BAND_OFFSETS[o]`` (0 where that cell is off the grid),
+        shape ``(3, 6, M)`` (:func:`band_correlations`).
+        """
+        return band_correlations(self)
+
     def reference(self, f: np.ndarray) -> np.ndarray:
         """``Pi f`` by the full fast transforms (the statement of :meth:`__call__`)."""
         g = self.grid
@@ -280,3 +289,82 @@ class BandLimit:
     def matrix(self) -> np.ndarray:
         """Dense ``Pi`` (``M x M``), for the reference filters."""
         return self.reference(np.eye(self.grid.size))
+
+
+BAND_OFFSETS = ((0, 1), (1, 0), (0, 2), (2, 0), (1, 1), (1, -1))
+"""Cell offsets ``(dy, dx)`` of the pairs two entries of one 5-point row couple (with
+their negatives): neighbours of a cell are at most two cells apart."""
+
+
+def _band_factors(band: BandLimit) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per field of :meth:`BandLimit.correlations`, the separable factors ``(u, w)`` of
+    its mode fields ``f_ab(y, x) = u_b(y) w_a(x)`` on the band's rows: the cosines for the
+    density, one of them differentiated by the grid's 1-D central difference for the
+    gradient components.
+    """
+    g = band.grid
+    c_y, c_x = band.bases
+    d_x = _central_difference(g.nx, g.dx)
+    d_y = _central_difference(g.ny, g.dy)
+    return [(c_y, c_x), (c_y, c_x @ d_x.T), (c_y @ d_y.T, c_x)]
+
+
+def _central_difference(n: int, h: float) -> np.ndarray:
+    """The 1-D grid gradient of :meth:`harness.grid.Grid.gradient` as a dense matrix."""
+    d = np.zeros((n, n))
+    for i in range(n):
+        lo, hi = max(i - 1, 0), min(i + 1, n - 1)
+        d[i, hi] += 0.5 / h
+        d[i, lo] -= 0.5 / h
+    return d
+
+
+def _shifted(u: np.ndarray, o: int) -> np.ndarray:
+    """``u[:, i] u[:, i + o]`` for each column ``i`` (0 where ``i + o`` is off the grid)."""
+    out = np.zeros_like(u)
+    n = u.shape[1]
+    if o >= 0:
+        out[:, : n - o] = u[:, : n - o] * u[:, o:]
+    else:
+        out[:, -o:] = u[:, -o:] * u[:, : n + o]
+    return out
+
+
+def band_correlations(band: BandLimit) -> np.ndarray:
+    """``rho[k, o, i] = C_k(i, j) / sqrt(C_k(i, i) C_k(j, j))``, ``j = i +
+    BAND_OFFSETS[o]``, with ``C_0 = Pi`` and ``C_1, C_2 = G_x Pi G_x^T, G_y Pi G_y^T``
+    the covariances of the band-limited white field and of its gradient components.
+
+    Separable sums over the band's modes: ``C(i, j) = sum_ab mask_ab u_b(y_i) u_b(y_j)
+    w_a(x_i) w_a(x_j) = [U^T mask W](y_i, x_i)`` with ``U`` and ``W`` the products of the
+    factors at the two rows and the two columns (:func:`_band_factors`), so each offset
+    costs two small matrix products. 0 where ``j`` is off the grid or a variance
+    vanishes. :func:`band_covariance_dense` is the dense statement (small grids).
+    """
+    g = band.grid
+    mask = band.mask[: band.bases[0].shape[0], : band.bases[1].shape[0]].astype(float)
+    out = np.zeros((3, len(BAND_OFFSETS), g.size))
+    for k, (u, w) in enumerate(_band_factors(band)):
+        var = (u * u).T @ mask @ (w * w)
+        for o, (oy, ox) in enumerate(BAND_OFFSETS):
+            cov = _shifted(u, oy).T @ mask @ _shifted(w, ox)
+            partner = np.zeros_like(var)  # var at (y + oy, x + ox)
+            ys = slice(0, g.ny - oy)
+            xs = slice(max(-ox, 0), g.nx - max(ox, 0))
+            partner[ys, xs] = var[oy : oy + (g.ny - oy), xs.start + ox : xs.stop + ox]
+            denom = np.sqrt(var * partner)
+            rho = np.divide(cov, denom, out=np.zeros_like(cov), where=denom > 0.0)
+            out[k, o] = rho.ravel()
+    return out
+
+
+def band_covariance_dense(band: BandLimit, k: int) -> np.ndarray:
+    """``C_k`` of :func:`band_correlations` as a dense ``M x M`` matrix, from the mode
+    fields themselves (the reference; small grids only).
+    """
+    g = band.grid
+    u, w = _band_factors(band)[k]
+    rows, cols = np.nonzero(band.mask[: u.shape[0], : w.shape[0]])
+    modes = np.stack([np.outer(u[b], w[a]).ravel() for b, a in zip(rows, cols, strict=True)])
+    assert modes.shape[1] == g.size
+    return modes.T @ modes

@@ -14,16 +14,31 @@ A)^{-1} = I + O(dt)`` couples a cell only to its neighbours and only weakly
 diagonal in the variables where the information arrives, and that is the
 structure kept here.
 
-Density filter (variance form, diagonal ``P = diag(d)``):
+Density filter (variance form: the local variances ``d`` of the state):
 
     predict:  x^- = F x^+                        (exact, as in the reference)
-              d^- = (F1 o F1) d^+ + q dt k        (F1 = I + dt A; o = entrywise product)
+              d^- = diag(F1 S R S F1^T) + q dt k  (F1 = I + dt A, S = diag(sqrt(d^+)))
     update:   d^+ = 1 / (1 / d^- + 1 / r),        x^+ = x^- + (d^+ / r) (y - x^-),
 
-``r`` the diagonal of ``R``. ``diag(F D F^T) = (F o F) d`` exactly for diagonal
-``D``; ``F1`` is ``F`` to first order. Only the off-diagonal covariance that
-transport creates in one step is dropped. With ``A = 0`` the filter *is* the
-reference (a test checks it).
+``r`` the diagonal of ``R``; ``F1`` is ``F`` to first order. The prior behind the
+prediction is ``P = S R S``: local variances ``d`` with the correlations ``R`` of the
+state space. With every cosine mode kept (no band limit) ``R = I``, ``P`` is diagonal
+and ``d^- = (F1 o F1) d^+`` (``o`` the entrywise product), exact for that ``P``: only
+the off-diagonal covariance that transport creates in one step is dropped. With the
+band limit (below) the state is a band-limited field, and so is its error: ``R`` is
+the correlation of the band-limited white field ``Pi w``, ``R_ij = Pi_ij / sqrt(Pi_ii
+Pi_jj)``, needed only between a cell's 5-point neighbours
+(:meth:`harness.filters.common.BandLimit.correlations`; the prediction
+:func:`transition_variance`). Why not ``R = I`` there: a white ``P`` holds grid-scale
+modes that diffusion damps at the rate ``sigma |kappa|^2`` of the grid's highest
+modes, so ``(F1 o F1)`` drains a cell's variance by about ``8 dt sigma / dx^2`` per
+step, 0.26 at ``n = 256`` at the paper's settings, and the filter's gain fell with
+the grid (mean density gain 0.047, 0.042, 0.030, 0.015 at ``n`` = 32, 64, 128, 256,
+measured mid-run): on fine grids the filter trusted its model more and the KDE less
+for modes outside the state space. The band-limited field decays at ``sigma
+|kappa|^2 <= sigma kappa_c^2`` instead: ``dt sigma kappa_c^2 = 0.002`` per step on
+every grid (a test checks both rates). With ``A = 0`` the filter *is* the reference
+(a test checks it).
 
 Gradient filter (information form). Its state is an auxiliary unit-mass density
 ``x_g`` with ``q_hat = G x_g`` (the integration operator ``I`` carried along: ``q``
@@ -33,7 +48,8 @@ stays in the range of the grid gradient ``G`` and ``q_{n+1} = G F I(q_n)`` becom
 (``W_g = R_g^{-1}`` diagonal per gradient component). Both are of the form
 ``Y = G^T diag(C) G``: information that is diagonal on the *gradient* grid. So
 
-    predict:  x_g^- = F x_g^+,   1/C^- = (F1 o F1) (1/C^+) + q dt k_g   (per component)
+    predict:  x_g^- = F x_g^+,   1/C^- = diag(F1 S R_c S F1^T) + q dt k_g   (per component c,
+                                  S = diag(sqrt(1/C^+)), R_c that of G_c Pi w; R_c = I without band)
     update:   C^+ = C^- + w_g,
               x_g^+ = x_g^- + delta,   (G^T C^+ G) delta = G^T W_g (y_g - G x_g^-),  sum delta = 0,
 
@@ -87,7 +103,13 @@ import scipy.sparse.linalg as spla
 from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
 from harness.fokker_planck import FokkerPlanck, NumericalError, implicit_solve
 from harness.grid import Grid
-from harness.kernels import band_gram, band_rows, pinned_band_operator, weighted_poisson_pcg
+from harness.kernels import (
+    band_gram,
+    band_rows,
+    band_transition_variance,
+    pinned_band_operator,
+    weighted_poisson_pcg,
+)
 from harness.kernels import squared_transition as compiled_squared_transition
 from harness.velocity import VelocityField
 
@@ -116,6 +138,45 @@ def squared_transition_reference(a: sp.csr_matrix, dt: float, d: np.ndarray) -> 
     # (1 + dt a_ii)^2 on the diagonal instead of (dt a_ii)^2
     boost = 1.0 + 2.0 * dt * diag
     return sq @ d + (boost[:, None] * d if d.ndim == 2 else boost * d)
+
+
+def transition_variance(
+    a: sp.csr_matrix, dt: float, d: np.ndarray, rho: np.ndarray | None, nx: int
+) -> np.ndarray:
+    """The prediction of the filters' variances: ``diag(F1 S R S F1^T)`` for each column
+    of ``d`` (``S = diag(sqrt(d))``, ``F1 = I + dt A``, ``A`` 5-point on a grid of
+    ``nx`` columns), ``R`` the band's correlations ``rho`` (``(c, 6, M)`` from
+    :meth:`harness.filters.common.BandLimit.correlations`; compiled,
+    :func:`harness.kernels.band_transition_variance`), or ``R = I`` when ``rho`` is
+    None (every mode kept): then it is :func:`squared_transition`. Derivation in the
+    module docstring; :func:`transition_variance_reference` is the dense statement.
+    """
+    if rho is None:
+        return squared_transition(a, dt, d)
+    a = a.tocsr()
+    if not a.has_canonical_format:
+        a = a.copy()
+        a.sum_duplicates()
+    cols = np.ascontiguousarray(d, dtype=float).reshape(d.shape[0], -1)
+    out = band_transition_variance(a.indptr, a.indices, a.data, float(dt), cols, rho, int(nx))
+    return out.reshape(d.shape)
+
+
+def transition_variance_reference(
+    a: sp.csr_matrix, dt: float, d: np.ndarray, correlations: list[np.ndarray]
+) -> np.ndarray:
+    """Dense statement of :func:`transition_variance`: column ``k`` of ``d`` ``(M, c)``
+    gives ``diag(F1 S R_k S F1^T)`` with the dense correlation matrices ``R_k``
+    (``correlations[k]``, or ``correlations[0]`` for every column).
+    """
+    f1 = np.eye(a.shape[0]) + dt * a.toarray()
+    cols = d.reshape(d.shape[0], -1)
+    out = np.empty_like(cols)
+    for k in range(cols.shape[1]):
+        r = correlations[k if len(correlations) > 1 else 0]
+        s = np.sqrt(cols[:, k])
+        out[:, k] = np.einsum("ij,jl,il->i", f1 * s, r, f1 * s)
+    return out.reshape(d.shape)
 
 
 class WeightedPoisson:
@@ -555,6 +616,8 @@ class LocalFilters:
         # above the LU preconditioner's grids, the gradient update is solved in the band
         fine = grid.size > self.poisson.lu_max_cells and not self.band.is_identity
         self.band_poisson = BandPoisson(grid, self.band) if fine else None
+        # the band's correlations between neighbouring cells, for the variance prediction
+        self.correlations = None if self.band.is_identity else self.band.correlations()
         self.x: np.ndarray | None = None  # p_hat, flattened
         self.d: np.ndarray | None = None  # density variances
         self.x_g: np.ndarray | None = None  # auxiliary density, q_hat = G x_g
@@ -598,13 +661,17 @@ class LocalFilters:
         g, s, dt = self.grid, self.settings, self.dt
         k, k_g = self.measurement.constants
         a = self.operator.matrix(v_applied) if a is None else a
-        # predict: states by the grid transition, variances by F1 o F1
+        # predict: states by the grid transition, variances by F1 S R S F1^T
         states = implicit_solve(a, dt, np.column_stack([self.x, self.x_g]), g.nx)
         x, x_g = states[:, 0], states[:, 1]
         q = s.process_noise * dt
         # one product for the density variances and both gradient components
-        var = squared_transition(
-            a, dt, np.column_stack([self.d, (1.0 / self.c_g).reshape(2, g.size).T])
+        var = transition_variance(
+            a,
+            dt,
+            np.column_stack([self.d, (1.0 / self.c_g).reshape(2, g.size).T]),
+            self.correlations,
+            g.nx,
         )
         d = var[:, 0] + q * k
         c_g = 1.0 / (var[:, 1:].T.ravel() + q * k_g)
