@@ -982,7 +982,70 @@ def density_summary(
     return finite, s0, s1, low, top
 
 
-@numba.njit(cache=True, nogil=True)
+def _band_transition_variance(
+    indptr: np.ndarray,
+    indices: np.ndarray,
+    data: np.ndarray,
+    dt: float,
+    d: np.ndarray,
+    sq: np.ndarray,
+    rho: np.ndarray,
+    nx: int,
+    out: np.ndarray,
+) -> None:
+    """Rows of :func:`band_transition_variance` into ``out`` (``d``, ``sq = sqrt(d)``
+    and ``rho`` padded with a zero row / column ``M`` that absent neighbours index).
+    """
+    m = out.shape[0]
+    c = out.shape[1]
+    one_rho = rho.shape[0] == 1
+    bad = 0
+    for i in numba.prange(m):
+        fc = 1.0
+        fw = 0.0
+        fe = 0.0
+        fs = 0.0
+        fn = 0.0
+        w = m
+        e = m
+        so = m
+        no = m
+        for jj in range(indptr[i], indptr[i + 1]):
+            j = indices[jj]
+            f = dt * data[jj]
+            if j == i:
+                fc += f
+            elif j == i - 1:
+                fw, w = f, j
+            elif j == i + 1:
+                fe, e = f, j
+            elif j == i - nx:
+                fs, so = f, j
+            elif j == i + nx:
+                fn, no = f, j
+            else:
+                bad += 1
+        for k in range(c):
+            kr = 0 if one_rho else k
+            sc, sw, se, ss, sn = sq[i, k], sq[w, k], sq[e, k], sq[so, k], sq[no, k]
+            acc = fc * fc * d[i, k] + fw * fw * d[w, k] + fe * fe * d[e, k]
+            acc += fs * fs * d[so, k] + fn * fn * d[no, k]
+            pairs = fc * fw * sc * sw * rho[kr, 0, w] + fc * fe * sc * se * rho[kr, 0, i]
+            pairs += fc * fs * sc * ss * rho[kr, 1, so] + fc * fn * sc * sn * rho[kr, 1, i]
+            pairs += fw * fe * sw * se * rho[kr, 2, w] + fs * fn * ss * sn * rho[kr, 3, so]
+            # west (y, x-1) and south (y-1, x) to north (y+1, x) and east (y, x+1): (1, 1)
+            pairs += fw * fn * sw * sn * rho[kr, 4, w] + fs * fe * ss * se * rho[kr, 4, so]
+            # south to west and east to north: (1, -1)
+            pairs += fs * fw * ss * sw * rho[kr, 5, so] + fe * fn * se * sn * rho[kr, 5, e]
+            out[i, k] = acc + 2.0 * pairs
+    if bad:
+        raise ValueError("band_transition_variance needs a 5-point operator")
+
+
+_btv_serial = _build(_band_transition_variance, parallel=False)
+_btv_parallel = _build(_band_transition_variance, parallel=True)
+
+
 def band_transition_variance(
     indptr: np.ndarray,
     indices: np.ndarray,
@@ -991,11 +1054,12 @@ def band_transition_variance(
     d: np.ndarray,
     rho: np.ndarray,
     nx: int,
-) -> np.ndarray:  # pragma: no cover - compiled
+) -> np.ndarray:
     """``diag(F1 S R S F1^T)`` for each column of ``d`` ``(M, c)``: ``F1 = I + dt A``
     (CSR arrays of a 5-point ``A`` on a grid of ``nx`` columns, without duplicates),
     ``S = diag(sqrt(d))`` and ``R`` the correlations of column ``k`` (``rho[k]``, or
-    ``rho[0]`` for every column when ``rho`` has one), so that row ``i`` is
+    ``rho[0]`` for every column when ``rho`` has one; ``(c, 6, M)``, or ``(c, 6, M +
+    1)`` with a zero column ``M``, the layout the kernel reads), so that row ``i`` is
 
         sum_j F1_ij^2 d_j + 2 sum_{j < l} F1_ij F1_il sqrt(d_j d_l) R_jl
 
@@ -1003,61 +1067,24 @@ def band_transition_variance(
     ten pairs, whose correlations ``rho[k, o, j]`` are those of cell ``j`` with ``j +
     BAND_OFFSETS[o]`` (:data:`harness.filters.common.BAND_OFFSETS`: (0, 1), (1, 0),
     (0, 2), (2, 0), (1, 1), (1, -1) as ``(dy, dx)``), read at the pair's lower cell.
-    With ``rho = 0`` it is :func:`squared_transition`;
-    :func:`harness.filters.local.transition_variance_reference` is the dense statement.
+    Compiled, rows in parallel from ``PARALLEL_MIN_CELLS`` cells on (each row's
+    arithmetic is the same either way); with ``rho = 0`` it is
+    :func:`squared_transition`; :func:`harness.filters.local.transition_variance_reference`
+    is the dense statement.
 
     Raises:
         ValueError: ``A`` couples cells that are not grid neighbours.
     """
     m, c = d.shape
+    dp = np.zeros((m + 1, c))
+    dp[:m] = d
+    sq = np.sqrt(dp)
+    if rho.shape[2] == m + 1:  # already padded (BandLimit.correlations)
+        rp = rho
+    else:
+        rp = np.zeros((rho.shape[0], rho.shape[1], m + 1))
+        rp[:, :, :m] = rho
     out = np.empty((m, c))
-    sq = np.sqrt(d)
-    for i in range(m):
-        fc = 1.0
-        fw = 0.0
-        fe = 0.0
-        fs = 0.0
-        fn = 0.0
-        for jj in range(indptr[i], indptr[i + 1]):
-            j = indices[jj]
-            f = dt * data[jj]
-            if j == i:
-                fc += f
-            elif j == i - 1:
-                fw = f
-            elif j == i + 1:
-                fe = f
-            elif j == i - nx:
-                fs = f
-            elif j == i + nx:
-                fn = f
-            else:
-                raise ValueError("band_transition_variance needs a 5-point operator")
-        # neighbours' indices (only read where their coefficient is not zero)
-        w, e, so, no = i - 1, i + 1, i - nx, i + nx
-        for k in range(c):
-            kr = k if rho.shape[0] > 1 else 0
-            sc = sq[i, k]
-            acc = fc * fc * d[i, k]
-            if fw != 0.0:
-                acc += fw * fw * d[w, k] + 2.0 * fc * fw * sc * sq[w, k] * rho[kr, 0, w]
-            if fe != 0.0:
-                acc += fe * fe * d[e, k] + 2.0 * fc * fe * sc * sq[e, k] * rho[kr, 0, i]
-            if fs != 0.0:
-                acc += fs * fs * d[so, k] + 2.0 * fc * fs * sc * sq[so, k] * rho[kr, 1, so]
-            if fn != 0.0:
-                acc += fn * fn * d[no, k] + 2.0 * fc * fn * sc * sq[no, k] * rho[kr, 1, i]
-            if fw != 0.0 and fe != 0.0:
-                acc += 2.0 * fw * fe * sq[w, k] * sq[e, k] * rho[kr, 2, w]
-            if fs != 0.0 and fn != 0.0:
-                acc += 2.0 * fs * fn * sq[so, k] * sq[no, k] * rho[kr, 3, so]
-            if fw != 0.0 and fn != 0.0:  # west (y, x-1) to north (y+1, x): (1, 1)
-                acc += 2.0 * fw * fn * sq[w, k] * sq[no, k] * rho[kr, 4, w]
-            if fs != 0.0 and fe != 0.0:  # south (y-1, x) to east (y, x+1): (1, 1)
-                acc += 2.0 * fs * fe * sq[so, k] * sq[e, k] * rho[kr, 4, so]
-            if fs != 0.0 and fw != 0.0:  # south (y-1, x) to west (y, x-1): (1, -1)
-                acc += 2.0 * fs * fw * sq[so, k] * sq[w, k] * rho[kr, 5, so]
-            if fe != 0.0 and fn != 0.0:  # east (y, x+1) to north (y+1, x): (1, -1)
-                acc += 2.0 * fe * fn * sq[e, k] * sq[no, k] * rho[kr, 5, e]
-            out[i, k] = acc
+    kernel = _btv_parallel if m >= PARALLEL_MIN_CELLS else _btv_serial
+    kernel(indptr, indices, data, float(dt), dp, sq, rp, int(nx), out)
     return out

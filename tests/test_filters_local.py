@@ -460,3 +460,34 @@ def test_band_limited_variance_decays_at_the_band_rate_on_every_grid():
         r = dt * sigma * n**2  # dt sigma / dx^2: interior rows of F1 are 1 - 4 r and r
         assert white_rate[n] == pytest.approx(1.0 - ((1 - 4 * r) ** 2 + 4 * r**2), rel=1e-9)
     assert band_rate[128] == pytest.approx(band_rate[64], rel=0.05)
+
+
+def test_band_transition_variance_does_not_depend_on_thread_count(rng):
+    """From ``PARALLEL_MIN_CELLS`` cells on the rows run in parallel; one thread, two
+    threads and the serial build give the same bits."""
+    import numba
+
+    from harness import kernels
+    from harness.filters.common import BandLimit
+
+    g = Grid.square(256)
+    assert g.size >= kernels.PARALLEL_MIN_CELLS
+    rho = BandLimit(g, 2.5 / 0.04).correlations()
+    ny, nx = g.shape
+    v = VelocityField.from_centres(rng.normal(scale=0.01, size=(2, ny, nx)))
+    a = FokkerPlanck(g, 5e-5).matrix(v)
+    d = rng.uniform(0.5, 2.0, (g.size, 3))
+    args = (a.indptr, a.indices, a.data, 0.01, d, rho, nx)
+    before = numba.get_num_threads()
+    try:
+        outs = []
+        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+            numba.set_num_threads(threads)
+            outs.append(kernels.band_transition_variance(*args))
+    finally:
+        numba.set_num_threads(before)
+    assert np.array_equal(outs[0], outs[1])
+    dp = np.vstack([d, np.zeros((1, 3))])
+    serial = np.empty_like(d)
+    kernels._btv_serial(a.indptr, a.indices, a.data, 0.01, dp, np.sqrt(dp), rho, nx, serial)
+    assert np.array_equal(outs[0], serial)

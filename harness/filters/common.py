@@ -272,7 +272,8 @@ class BandLimit:
         transition couples: ``rho[k, o, i]`` for the density (``k = 0``) and the two
         gradient components (``k = 1, 2``: the fields ``G_x Pi w``, ``G_y Pi w``) between
         cell ``i`` and cell ``i + BAND_OFFSETS[o]`` (0 where that cell is off the grid),
-        shape ``(3, 6, M)`` (:func:`band_correlations`).
+        shape ``(3, 6, M + 1)``: column ``M``, zero, is what an absent neighbour reads
+        in :func:`harness.kernels.band_transition_variance` (:func:`band_correlations`).
         """
         return band_correlations(self)
 
@@ -339,11 +340,12 @@ def band_correlations(band: BandLimit) -> np.ndarray:
     w_a(x_i) w_a(x_j) = [U^T mask W](y_i, x_i)`` with ``U`` and ``W`` the products of the
     factors at the two rows and the two columns (:func:`_band_factors`), so each offset
     costs two small matrix products. 0 where ``j`` is off the grid or a variance
-    vanishes. :func:`band_covariance_dense` is the dense statement (small grids).
+    vanishes; shape ``(3, 6, M + 1)`` with a zero column ``M``.
+    :func:`band_covariance_dense` is the dense statement (small grids).
     """
     g = band.grid
     mask = band.mask[: band.bases[0].shape[0], : band.bases[1].shape[0]].astype(float)
-    out = np.zeros((3, len(BAND_OFFSETS), g.size))
+    out = np.zeros((3, len(BAND_OFFSETS), g.size + 1))  # column M: absent neighbours
     for k, (u, w) in enumerate(_band_factors(band)):
         var = (u * u).T @ mask @ (w * w)
         for o, (oy, ox) in enumerate(BAND_OFFSETS):
@@ -354,7 +356,7 @@ def band_correlations(band: BandLimit) -> np.ndarray:
             partner[ys, xs] = var[oy : oy + (g.ny - oy), xs.start + ox : xs.stop + ox]
             denom = np.sqrt(var * partner)
             rho = np.divide(cov, denom, out=np.zeros_like(cov), where=denom > 0.0)
-            out[k, o] = rho.ravel()
+            out[k, o, : g.size] = rho.ravel()
     return out
 
 
