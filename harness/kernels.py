@@ -742,6 +742,8 @@ def pinned_band_operator(
                 w = c[j, i] * h2
                 a = position[lo]
                 b = position[hi]
+                if abs(a - b) > width:
+                    raise ValueError("pinned_band_operator: a coupling lies outside the band")
                 ab[0, a] += w
                 ab[0, b] += w
                 ab[abs(a - b), min(a, b)] -= w
@@ -792,8 +794,8 @@ def _band_cholesky_inplace(
     = y`` along the columns of ``L^T``, i.e. :func:`band_rows`): each step scales one
     entry by its diagonal's reciprocal ``inv_diag`` and subtracts a contiguous segment,
     a loop without a reduction that compiles to vector instructions (measured at
-    ``M = 900``, ``w = 60``: 23 us for both against 47 us for the column-then-dot
-    form with divisions).
+    ``M = 900``, ``w = 60``: 12 and 18 us against 25 and 22 us for the column and dot
+    forms with divisions; the whole preconditioner 23 against 53 us).
     """
     m, width = factor.shape
     w = width - 1
@@ -992,7 +994,7 @@ def _band_transition_variance(
     rho: np.ndarray,
     nx: int,
     out: np.ndarray,
-) -> None:
+) -> None:  # pragma: no cover - compiled
     """Rows of :func:`band_transition_variance` into ``out`` (``d``, ``sq = sqrt(d)``
     and ``rho`` padded with a zero row / column ``M`` that absent neighbours index).
     """
@@ -1010,14 +1012,15 @@ def _band_transition_variance(
         e = m
         so = m
         no = m
+        x = i % nx
         for jj in range(indptr[i], indptr[i + 1]):
             j = indices[jj]
             f = dt * data[jj]
             if j == i:
                 fc += f
-            elif j == i - 1:
+            elif j == i - 1 and x > 0:
                 fw, w = f, j
-            elif j == i + 1:
+            elif j == i + 1 and x < nx - 1:
                 fe, e = f, j
             elif j == i - nx:
                 fs, so = f, j
@@ -1037,7 +1040,7 @@ def _band_transition_variance(
             pairs += fw * fn * sw * sn * rho[kr, 4, w] + fs * fe * ss * se * rho[kr, 4, so]
             # south to west and east to north: (1, -1)
             pairs += fs * fw * ss * sw * rho[kr, 5, so] + fe * fn * se * sn * rho[kr, 5, e]
-            out[i, k] = acc + 2.0 * pairs
+            out[i, k] = max(acc + 2.0 * pairs, 0.0)  # a quadratic form: >= 0 but round-off
     if bad:
         raise ValueError("band_transition_variance needs a 5-point operator")
 
@@ -1076,6 +1079,10 @@ def band_transition_variance(
         ValueError: ``A`` couples cells that are not grid neighbours.
     """
     m, c = d.shape
+    if rho.ndim != 3 or rho.shape[0] not in (1, c) or rho.shape[1] != 6:
+        raise ValueError(f"rho must have shape (1 or {c}, 6, M or M + 1), got {rho.shape}")
+    if rho.shape[2] not in (m, m + 1) or nx < 2 or m % nx:
+        raise ValueError(f"rho, nx = {nx} and {m} cells do not fit one grid")
     dp = np.zeros((m + 1, c))
     dp[:m] = d
     sq = np.sqrt(dp)

@@ -402,8 +402,9 @@ def test_fast_filters_with_the_band_solve_track_reference():
 def test_band_transition_variance_is_the_dense_congruence(rng):
     """The compiled variance prediction with the band's correlations equals
     ``diag(F1 S R S F1^T)`` with the dense correlation matrices of the band-limited
-    white field and of its gradient components, computed from the mode fields."""
-    from harness.filters.common import BandLimit, band_covariance_dense
+    white field (from the dense projector ``Pi``, full cosine transforms) and of its
+    gradient components (``G_c Pi G_c^T`` with the grid's gradient matrix)."""
+    from harness.filters.common import BandLimit
     from harness.filters.local import transition_variance, transition_variance_reference
 
     g = Grid(14, 12, 0.0, 1.0, 0.0, 0.9)
@@ -417,22 +418,21 @@ def test_band_transition_variance_is_the_dense_congruence(rng):
     )
     a = FokkerPlanck(g, 1e-3).matrix(v)
     d = rng.uniform(0.5, 2.0, (g.size, 3))
+    pi = band.matrix()
+    gm = g.gradient_matrix.toarray()
     dense = []
-    for k in range(3):
-        cov = band_covariance_dense(band, k)
+    for cov in (pi, gm[: g.size] @ pi @ gm[: g.size].T, gm[g.size :] @ pi @ gm[g.size :].T):
         s = np.sqrt(np.diag(cov))
         dense.append(cov / np.outer(s, s))
     fast = transition_variance(a, 0.05, d, band.correlations(), nx)
-    np.testing.assert_allclose(fast, transition_variance_reference(a, 0.05, d, dense), rtol=1e-13)
+    np.testing.assert_allclose(fast, transition_variance_reference(a, 0.05, d, dense), rtol=1e-12)
     # one correlation for every column (the density's)
     one = transition_variance(a, 0.05, d, band.correlations()[:1], nx)
-    np.testing.assert_allclose(
-        one, transition_variance_reference(a, 0.05, d, dense[:1]), rtol=1e-13
-    )
+    ref_one = transition_variance_reference(a, 0.05, d, dense[:1])
+    np.testing.assert_allclose(one, ref_one, rtol=1e-12)
     # without the band it is the white congruence (F1 o F1) d
-    np.testing.assert_array_equal(
-        transition_variance(a, 0.05, d, None, nx), squared_transition(a, 0.05, d)
-    )
+    white = transition_variance(a, 0.05, d, None, nx)
+    np.testing.assert_array_equal(white, squared_transition(a, 0.05, d))
 
 
 def test_band_limited_variance_decays_at_the_band_rate_on_every_grid():
@@ -478,10 +478,12 @@ def test_band_transition_variance_does_not_depend_on_thread_count(rng):
     a = FokkerPlanck(g, 5e-5).matrix(v)
     d = rng.uniform(0.5, 2.0, (g.size, 3))
     args = (a.indptr, a.indices, a.data, 0.01, d, rho, nx)
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("one numba thread: nothing to compare")
     before = numba.get_num_threads()
     try:
         outs = []
-        for threads in (1, min(2, numba.config.NUMBA_NUM_THREADS)):
+        for threads in (1, 2):
             numba.set_num_threads(threads)
             outs.append(kernels.band_transition_variance(*args))
     finally:
@@ -491,3 +493,52 @@ def test_band_transition_variance_does_not_depend_on_thread_count(rng):
     serial = np.empty_like(d)
     kernels._btv_serial(a.indptr, a.indices, a.data, 0.01, dp, np.sqrt(dp), rho, nx, serial)
     assert np.array_equal(outs[0], serial)
+
+
+def test_band_correlations_are_the_dense_projectors_entries():
+    """``rho[k, o, i]`` is the correlation of cell ``i`` with ``i + offset`` in the dense
+    ``Pi`` (full cosine transforms) and in ``G_c Pi G_c^T``; 0 off the grid; within
+    [-1, 1]; and 1 at no offset would be the diagonal (checked through symmetry)."""
+    from harness.filters.common import BAND_OFFSETS, BandLimit
+
+    g = Grid(14, 12, 0.0, 1.0, 0.0, 0.9)
+    band = BandLimit(g, 25.0)
+    rho = band.correlations()
+    assert rho.shape == (3, len(BAND_OFFSETS), g.size + 1)
+    assert np.all(rho[:, :, -1] == 0.0)
+    pi = band.matrix()
+    gm = g.gradient_matrix.toarray()
+    ny, nx = g.shape
+    for k, cov in enumerate(
+        (pi, gm[: g.size] @ pi @ gm[: g.size].T, gm[g.size :] @ pi @ gm[g.size :].T)
+    ):
+        s = np.sqrt(np.diag(cov))
+        for o, (oy, ox) in enumerate(BAND_OFFSETS):
+            for i in range(g.size):
+                y, x = divmod(i, nx)
+                if 0 <= y + oy < ny and 0 <= x + ox < nx:
+                    j = (y + oy) * nx + x + ox
+                    assert rho[k, o, i] == pytest.approx(cov[i, j] / (s[i] * s[j]), abs=1e-12)
+                else:
+                    assert rho[k, o, i] == 0.0
+    assert np.abs(rho).max() <= 1.0
+
+
+@pytest.mark.parametrize("n", [16, 256])
+def test_band_transition_variance_refuses_couplings_that_wrap_a_row(n):
+    """A coupling of a row's first cell to the previous row's last (not a grid
+    neighbour, though ``i - 1``) is refused, by the serial and the parallel build."""
+    from harness.filters.common import BandLimit
+    from harness.filters.local import transition_variance
+
+    g = Grid.square(n)
+    rho = BandLimit(g, 2.5 / 0.04).correlations()
+    a = FokkerPlanck(g, 5e-5).matrix(VelocityField.zeros(g))
+    i = 2 * n  # x = 0 of the third row
+    wrap = sp.csr_matrix(([1.0], ([i], [i - 1])), shape=a.shape)
+    d = np.ones((g.size, 1))
+    transition_variance(a, 0.01, d, rho[:1], n)  # the operator itself is fine
+    with pytest.raises(ValueError, match="5-point"):
+        transition_variance((a + wrap).tocsr(), 0.01, d, rho[:1], n)
+    with pytest.raises(ValueError, match="shape"):
+        transition_variance(a, 0.01, d, rho[:, :5], n)

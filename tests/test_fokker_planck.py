@@ -519,3 +519,28 @@ def test_red_black_at_its_sweep_limit_returns_the_iterate_and_its_residual(rng):
     assert sweeps == 2 and res > 1e-15
     residual = np.abs(p - system @ x).sum() / np.abs(p).sum()
     assert residual == pytest.approx(res, rel=1e-9)
+
+
+def test_check_density_refuses_lost_mass_and_negative_values(grid30):
+    """The step's check (one compiled pass) raises on a mass change above the tolerance
+    and on a value below -1e-12 of the largest, and passes round-off below either."""
+    from harness.fokker_planck import check_density
+
+    before = np.full(grid30.shape, 1.0 / grid30.area)
+    check_density(grid30, before, before * (1 + 1e-10), 1e-9)  # within the tolerance
+    with pytest.raises(NumericalError, match="mass changed"):
+        check_density(grid30, before, before * (1 + 1e-8), 1e-9)
+
+    def moved(field, value):  # cell (3, 4) set to value, its mass moved to (3, 5)
+        out = field.copy()
+        out[3, 5] += out[3, 4] - value
+        out[3, 4] = value
+        return out
+
+    check_density(grid30, before, moved(before, -1e-13 * before.max()), 1e-9)  # round-off
+    with pytest.raises(NumericalError, match="negative"):
+        check_density(grid30, before, moved(before, -1e-10 * before.max()), 1e-9)
+    # the threshold follows the largest value before the step, not after
+    peak = before.copy()
+    peak[0, 0] *= 1e4
+    check_density(grid30, peak, moved(peak, -1e-10 * before.max()), 1e-9)

@@ -340,8 +340,9 @@ def band_correlations(band: BandLimit) -> np.ndarray:
     w_a(x_i) w_a(x_j) = [U^T mask W](y_i, x_i)`` with ``U`` and ``W`` the products of the
     factors at the two rows and the two columns (:func:`_band_factors`), so each offset
     costs two small matrix products. 0 where ``j`` is off the grid or a variance
-    vanishes; shape ``(3, 6, M + 1)`` with a zero column ``M``.
-    :func:`band_covariance_dense` is the dense statement (small grids).
+    vanishes (below ``1e-12`` of the largest); shape ``(3, 6, M + 1)`` with a zero
+    column ``M``. A test compares with the entries of the dense ``Pi``
+    (:meth:`BandLimit.matrix`) and of ``G_c Pi G_c^T``.
     """
     g = band.grid
     mask = band.mask[: band.bases[0].shape[0], : band.bases[1].shape[0]].astype(float)
@@ -355,18 +356,9 @@ def band_correlations(band: BandLimit) -> np.ndarray:
             xs = slice(max(-ox, 0), g.nx - max(ox, 0))
             partner[ys, xs] = var[oy : oy + (g.ny - oy), xs.start + ox : xs.stop + ox]
             denom = np.sqrt(var * partner)
-            rho = np.divide(cov, denom, out=np.zeros_like(cov), where=denom > 0.0)
-            out[k, o, : g.size] = rho.ravel()
+            # a variance that is zero but for round-off (a component only the constant
+            # mode reaches) gets no correlation
+            keep = denom > 1e-12 * max(float(var.max()), np.finfo(float).tiny)
+            rho = np.divide(cov, denom, out=np.zeros_like(cov), where=keep)
+            out[k, o, : g.size] = np.clip(rho, -1.0, 1.0).ravel()
     return out
-
-
-def band_covariance_dense(band: BandLimit, k: int) -> np.ndarray:
-    """``C_k`` of :func:`band_correlations` as a dense ``M x M`` matrix, from the mode
-    fields themselves (the reference; small grids only).
-    """
-    g = band.grid
-    u, w = _band_factors(band)[k]
-    rows, cols = np.nonzero(band.mask[: u.shape[0], : w.shape[0]])
-    modes = np.stack([np.outer(u[b], w[a]).ravel() for b, a in zip(rows, cols, strict=True)])
-    assert modes.shape[1] == g.size
-    return modes.T @ modes

@@ -87,13 +87,15 @@ class LocalEngine(FilterEngine, name="local"):
 
     @classmethod
     def memory_bytes(cls, grid: Grid) -> int:
-        """Diagonal covariances and the gradient update's preconditioner: 64 grid fields,
-        the lagged banded Cholesky factor (``M (2 min(n_x, n_y) + 1)`` float64, small
-        grids) and two sparse LU factorisations (:func:`sparse_lu_bytes`, the fallback of
-        the fine grids' iteration).
+        """Local covariances and the gradient update's preconditioner: 64 grid fields,
+        the band's correlations (18 fields), the lagged banded Cholesky factor and its
+        rows (``2 M (2 min(n_x, n_y) + 1)`` float64, small grids) and two sparse LU
+        factorisations (:func:`sparse_lu_bytes`, the fallback of the fine grids'
+        iteration).
         """
-        band = 8 * grid.size * (2 * min(grid.nx, grid.ny) + 1)
-        return 64 * 8 * 3 * grid.size + band + 2 * sparse_lu_bytes(grid.size)
+        band = 2 * 8 * grid.size * (2 * min(grid.nx, grid.ny) + 1)
+        correlations = 18 * 8 * (grid.size + 1)
+        return 64 * 8 * 3 * grid.size + correlations + band + 2 * sparse_lu_bytes(grid.size)
 
     def initialize(self, p_kde: np.ndarray, grad_kde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`LocalFilters.initialize`."""

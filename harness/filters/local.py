@@ -1,4 +1,4 @@
-"""Fast filters: exact state propagation, local (diagonal) covariance structure.
+"""Fast filters: exact state propagation, local covariance structure.
 
 The paper's density filter (eqs. ``density filter``, ``density Riccati``) and gradient
 filter (eqs. ``gradient filter``, ``gradient Riccati``) in the sampled-data form of
@@ -33,12 +33,14 @@ Pi_jj)``, needed only between a cell's 5-point neighbours
 modes that diffusion damps at the rate ``sigma |kappa|^2`` of the grid's highest
 modes, so ``(F1 o F1)`` drains a cell's variance by about ``8 dt sigma / dx^2`` per
 step, 0.26 at ``n = 256`` at the paper's settings, and the filter's gain fell with
-the grid (mean density gain 0.047, 0.042, 0.030, 0.015 at ``n`` = 32, 64, 128, 256,
-measured mid-run): on fine grids the filter trusted its model more and the KDE less
-for modes outside the state space. The band-limited field decays at ``sigma
-|kappa|^2 <= sigma kappa_c^2`` instead: ``dt sigma kappa_c^2 = 0.002`` per step on
-every grid (a test checks both rates). With ``A = 0`` the filter *is* the reference
-(a test checks it).
+the grid (mean density gain 0.047, 0.042, 0.030, 0.015 at ``n`` = 32, 64, 128, 256
+after 3 s of the paper's loop, ``python -m benchmarks.filter_gain``): on fine grids the
+filter trusted its model more and the KDE less for modes outside the state space.
+(``8 dt sigma / dx^2`` is the mean of the variance decay ``2 dt sigma |kappa|^2`` over
+all grid modes.) Over the band's disc the same mean is ``dt sigma kappa_c^2 = 0.002``
+per step, on every grid (a test checks both rates). The update stays per cell, as if
+``P^-`` were diagonal: the correlations enter the prediction only. With ``A = 0`` the
+filter *is* the reference (a test checks it).
 
 Gradient filter (information form). Its state is an auxiliary unit-mass density
 ``x_g`` with ``q_hat = G x_g`` (the integration operator ``I`` carried along: ``q``
@@ -145,8 +147,8 @@ def transition_variance(
 ) -> np.ndarray:
     """The prediction of the filters' variances: ``diag(F1 S R S F1^T)`` for each column
     of ``d`` (``S = diag(sqrt(d))``, ``F1 = I + dt A``, ``A`` 5-point on a grid of
-    ``nx`` columns), ``R`` the band's correlations ``rho`` (``(c, 6, M)`` from
-    :meth:`harness.filters.common.BandLimit.correlations`; compiled,
+    ``nx`` columns), ``R`` the band's correlations ``rho`` (``(1 or c, 6, M + 1)``, as
+    :meth:`harness.filters.common.BandLimit.correlations` gives them; compiled,
     :func:`harness.kernels.band_transition_variance`), or ``R = I`` when ``rho`` is
     None (every mode kept): then it is :func:`squared_transition`. Derivation in the
     module docstring; :func:`transition_variance_reference` is the dense statement.
@@ -229,8 +231,8 @@ class WeightedPoisson:
         self._order = cells if grid.nx <= grid.ny else cells.reshape(grid.shape).T.ravel()
         self._position = np.empty_like(cells)
         self._position[self._order] = cells
-        # the band's width in that ordering (2 min(nx, ny) from 3 cells per side on)
-        self._width = self._band_operator_reference(np.ones(2 * grid.size)).shape[0] - 1
+        # the band's width in that ordering: couplings two rows (of the shorter side) apart
+        self._width = 2 * min(grid.nx, grid.ny)
         self.iterations = 0
         self.factorizations = 0
         eig_x = _gradient_eigenvalues(grid.nx, grid.dx)
@@ -677,7 +679,8 @@ class LocalFilters:
         c_g = 1.0 / (var[:, 1:].T.ravel() + q * k_g)
         self.x_prior, self.x_g_prior = x, x_g
         self.d_prior, self.c_g_prior = d, c_g
-        # density update (diagonal, exact for the diagonal prior)
+        # density update, per cell (exact for a diagonal prior; the prediction's
+        # correlations are not carried into it)
         r = self.measurement.density_variance(p_kde)
         self.d = 1.0 / (1.0 / d + 1.0 / r)
         self.x = self.band(x + self.d / r * (np.asarray(p_kde).ravel() - x))
