@@ -27,7 +27,7 @@ test: $(STAMP) ## Static checks (ruff, mypy) and the test suite (excludes tests 
 	$(PY) -m pytest
 
 test-slow: $(STAMP) ## Run only the slow tests
-	$(PY) -m pytest -m slow
+	$(PY) -m pytest -m slow -rP
 
 test-slurm: $(STAMP) ## Two-job SLURM sweep on a private one-node cluster (root; installs slurm-wlm, munge)
 	PY=$(abspath $(PY)) scripts/test_slurm.sh

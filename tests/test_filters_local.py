@@ -229,6 +229,7 @@ def test_fast_filters_track_reference_in_closed_loop():
     error against the mean-field truth, density and gradient."""
     c = compare_filters(n=12, steps=150, seed=2)
     worst_p, worst_q = c.ratios(skip=1)
+    print(f"n = 12: worst ratios {worst_p:.4f} (density), {worst_q:.4f} (gradient)")
     assert worst_p < 0.1, worst_p
     assert worst_q < 0.1, worst_q
 
@@ -237,6 +238,7 @@ def test_fast_filters_track_reference_in_closed_loop():
 def test_fast_filters_track_reference_at_paper_grid():
     c = compare_filters(n=30, steps=300, seed=0)
     worst_p, worst_q = c.ratios(skip=1)
+    print(f"n = 30: worst ratios {worst_p:.4f} (density), {worst_q:.4f} (gradient)")
     assert worst_p < 0.1 and worst_q < 0.1, (worst_p, worst_q)
 
 
@@ -296,6 +298,7 @@ def test_paper_loop_with_filters_converges_under_grid_refinement():
     error at n = 64 and n = 128 (same seed) agree within 10 %."""
     tail_64, worst_64 = _paper_loop_tail(64, 10.0)
     tail_128, worst_128 = _paper_loop_tail(128, 10.0)
+    print(f"tail ||p_hat - p_*||: {tail_64:.4f} (n = 64), {tail_128:.4f} (n = 128)")
     # stable: the error never exceeds its start (about 1.0 for the box start)
     assert max(worst_64, worst_128) < 1.05
     assert abs(tail_64 - tail_128) <= 0.1 * tail_128, (tail_64, tail_128)
@@ -396,6 +399,7 @@ def test_fast_filters_with_the_band_solve_track_reference():
     """The accuracy bar on a grid where the band solve is used (n = 34: 1156 cells)."""
     c = compare_filters(n=34, steps=150, seed=2)
     worst_p, worst_q = c.ratios(skip=1)
+    print(f"n = 34: worst ratios {worst_p:.4f} (density), {worst_q:.4f} (gradient)")
     assert worst_p < 0.1 and worst_q < 0.1, (worst_p, worst_q)
 
 
