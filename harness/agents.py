@@ -21,10 +21,16 @@ Parallelism. The compiled step runs the robots in parallel (numba ``prange``); e
 robot's arithmetic does not depend on the thread count. The Gaussian increments are
 drawn by numpy outside it: for fewer than ``PARALLEL_DRAW_MIN`` values in one call
 of ``rng.standard_normal`` (the stream of the serial harness); above, in fixed
-chunks of ``DRAW_CHUNK`` values, chunk ``c`` from the ``c``-th child of
-``rng.spawn`` (independent streams, numpy's own construction), filled by a thread
+chunks of ``DRAW_CHUNK`` values, chunk ``c`` from a generator on the ``c``-th child
+of ``rng``'s ``SeedSequence`` (independent streams, numpy's own construction, as
+``rng.spawn`` makes them) with numpy's ``SFC64`` bit generator, filled by a thread
 pool. Which numbers land where is fixed by ``N`` and ``rng``, never by the number
-of threads.
+of threads. Why ``SFC64`` for the chunks: numpy's normals from it are faster than
+from the default ``PCG64`` (2e6 values on two threads: 8.3 to 10.3 ms against 12.5
+to 12.8 ms, measured), and at ``N = 1e6`` the draws are most of an agent step; it is
+one of numpy's own generators, with the same statistical standing (it passes the
+usual test batteries). Swarms below ``PARALLEL_DRAW_MIN / 2`` robots, every study
+preset among them, draw from ``rng`` itself, as before.
 """
 
 from __future__ import annotations
@@ -60,16 +66,23 @@ def draw_normals(rng: np.random.Generator, out: np.ndarray) -> np.ndarray:
 
     Fewer than ``PARALLEL_DRAW_MIN`` values: ``rng.standard_normal(out=out)``.
     Otherwise chunk ``c`` (values ``c DRAW_CHUNK`` onwards of the flattened ``out``)
-    comes from the ``c``-th generator of ``rng.spawn(chunks)``; numpy releases the
-    GIL while filling, so the chunks fill in parallel, and the values do not depend
-    on the number of threads.
+    comes from an ``SFC64`` generator on the ``c``-th of ``chunks`` children spawned
+    from ``rng``'s ``SeedSequence`` (the children ``rng.spawn`` would use); numpy
+    releases the GIL while filling, so the chunks fill in parallel, and the values do
+    not depend on the number of threads.
+
+    Raises:
+        ValueError: on the parallel path, ``rng`` has no ``SeedSequence`` to spawn from.
     """
     flat = out.reshape(-1)
     if flat.size < PARALLEL_DRAW_MIN:
         rng.standard_normal(out=flat)
         return out
     chunks = (flat.size + DRAW_CHUNK - 1) // DRAW_CHUNK
-    children = rng.spawn(chunks)
+    seed_seq = rng.bit_generator.seed_seq
+    if not isinstance(seed_seq, np.random.SeedSequence):
+        raise ValueError("draw_normals needs a generator made from a SeedSequence (seeded)")
+    children = [np.random.Generator(np.random.SFC64(s)) for s in seed_seq.spawn(chunks)]
 
     def fill(c: int) -> None:
         children[c].standard_normal(out=flat[c * DRAW_CHUNK : (c + 1) * DRAW_CHUNK])

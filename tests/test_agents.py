@@ -162,6 +162,14 @@ def test_parallel_draw_gives_standard_normals():
     assert abs(z.mean()) < 5 / np.sqrt(n)
     assert abs(z.var() - 1.0) < 5 * np.sqrt(2 / n)
     assert abs(np.mean(z**4) - 3.0) < 5 * np.sqrt(96 / n)
+    # the whole distribution, and each chunk's (SFC64 generators on spawned seeds)
+    from scipy import stats
+
+    assert stats.kstest(z, "norm").pvalue > 1e-3
+    from harness.agents import DRAW_CHUNK as chunk
+
+    for c in range(z.size // chunk):
+        assert stats.kstest(z[c * chunk : (c + 1) * chunk], "norm").pvalue > 1e-4
     # chunks are independent streams: no two chunks repeat each other
     from harness.agents import DRAW_CHUNK
 
