@@ -145,7 +145,10 @@ def squared_transition_reference(a: sp.csr_matrix, dt: float, d: np.ndarray) -> 
 def transition_variance(
     a: sp.csr_matrix, dt: float, d: np.ndarray, rho: np.ndarray | None, nx: int
 ) -> np.ndarray:
-    """The prediction of the filters' variances: ``diag(F1 S R S F1^T)`` for each column
+    """The prediction of the filters' variances, the covariance-propagation half of eqs.
+    ``density Riccati`` and ``gradient Riccati`` in the sampled-data form of
+    :mod:`harness.filters.common` (``P^- = F P^+ F^T + Q``) for the local model ``P =
+    S R S``: ``diag(F1 S R S F1^T)`` for each column
     of ``d`` (``S = diag(sqrt(d))``, ``F1 = I + dt A``, ``A`` 5-point on a grid of
     ``nx`` columns), ``R`` the band's correlations ``rho`` (``(1 or c, 6, M + 1)``, as
     :meth:`harness.filters.common.BandLimit.correlations` gives them; compiled,
