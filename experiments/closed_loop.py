@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.checks import ConfigError, describe
-from harness.jobs import finish_sweep, run_job
+from harness.jobs import checked, finish_sweep, run_job
 from harness.run import DiskFull, run
 
 
@@ -38,7 +38,7 @@ def main(cfg: DictConfig) -> None:
         run_job(cfg, out, hc.job.num, list(hc.overrides.task))  # outcome in job_status.json
         return
     try:
-        result = run(cfg, out)
+        result = run(checked(cfg), out)
     except ConfigError as err:  # found only when the run starts (a live port in use)
         print(err, file=sys.stderr)
         sys.exit(2)

@@ -169,8 +169,6 @@ class Swarm:
         which :meth:`step_reference` states in plain numpy.
         """
         g = self.grid
-        if v.robots is not None:
-            return self.step_robots(v.robots, dt, rng)
         draw_normals(rng, self._noise)
         centres = np.ascontiguousarray(v.centres, dtype=float)
         euler_maruyama_step(
@@ -191,8 +189,8 @@ class Swarm:
     def step_robots(
         self, velocities: np.ndarray, dt: float, rng: np.random.Generator
     ) -> np.ndarray:
-        """Euler-Maruyama with each robot's own velocity ``(2, N)`` (length / s), for
-        decentralised control: ``X_i <- R(X_i + v_i dt + sqrt(2 sigma dt) xi_i)``, the
+        """Euler-Maruyama with each robot's own velocity ``(2, N)`` (length / s), for a
+        law that moves each robot itself: ``X_i <- R(X_i + v_i dt + sqrt(2 sigma dt) xi_i)``, the
         draws as in :meth:`step` (``R`` the reflection at the walls).
         """
         g = self.grid
@@ -206,12 +204,8 @@ class Swarm:
         return self.positions
 
     def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
-        """Plain-numpy statement of :meth:`step` (same random draws, same result; with
-        per-robot velocities ``v.robots`` it is :meth:`step_robots`, already numpy).
-        """
+        """Plain-numpy statement of :meth:`step` (same random draws, same result)."""
         g = self.grid
-        if v.robots is not None:
-            return self.step_robots(v.robots, dt, rng)
         draw_normals(rng, self._noise)
         self._noise *= np.sqrt(2.0 * self.sigma * dt)
         drift = interpolate(g, v.centres, self.positions)

@@ -1,15 +1,18 @@
-"""Build a closed loop from a config: every component from its YAML.
+"""Build a run from a config: every component and observer from its YAML.
 
-:func:`build` is one straight line: shared checks, grid, densities, model, plant,
-estimator, control, cross-component checks. Each component is instantiated from its
-config group's node (``_target_`` plus the class's own parameters) by
+:func:`build` is one straight line: shared checks, grid, densities, model, control,
+plant, estimator, the components' own compatibility checks, the step bound, the
+observers and the run's settings. It reads the whole config once; nothing reads the
+config after it (:class:`Experiment` holds everything a run needs). Each component is
+instantiated from its config node (``_target_`` plus the class's own parameters) by
 :func:`component`, which hands it its run-time arguments (see
-:mod:`harness.components`) and turns a refused parameter into a
-:class:`~harness.checks.ConfigError` that names the full key.
+:mod:`harness.components` and :mod:`harness.observers`) and turns a refused parameter
+into a :class:`~harness.checks.ConfigError` that names the full key.
 """
 
 from __future__ import annotations
 
+import inspect
 import re
 from dataclasses import dataclass
 from typing import Any
@@ -22,18 +25,22 @@ from omegaconf import DictConfig, OmegaConf
 from harness import components
 from harness.checks import (
     ConfigError,
+    DiskNeed,
     check_built,
     check_memory,
     check_resolvable,
     check_shared,
     check_unread,
     density_on_grid,
+    disk_need,
     target_on_grid,
 )
-from harness.components import Control, Density, Estimator, ParameterError, Plant
+from harness.components import Control, Density, Estimator, Incompatible, ParameterError, Plant
 from harness.densities import Target
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.identity import RunIdentity, identify
+from harness.observers import Observer
 
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z_][\w.]*)\}$")
 _UNEXPECTED = re.compile(r"unexpected keyword argument '(\w+)'")
@@ -45,15 +52,16 @@ PROTOCOLS: dict[str, type] = {
     "plant": components.Plant,
     "estimator": components.Estimator,
     "control": components.Control,
+    "observers": Observer,
 }
-"""The protocol each config group's component implements."""
+"""The protocol each config group's component implements (``observers``: each entry)."""
 
 
 def public_key(cfg: DictConfig, group: str, name: str) -> str:
     """The key to name for parameter ``name`` of ``group``: the key it interpolates
     (``plant.n: ${agents.n}`` gives ``agents.n``), else ``group.name``.
     """
-    node = cfg.get(group)
+    node = OmegaConf.select(cfg, group, default=None)
     raw = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else {}
     value = raw.get(name) if isinstance(raw, dict) else None
     match = _INTERPOLATION.match(value) if isinstance(value, str) else None
@@ -67,14 +75,15 @@ def _first_line(err: BaseException) -> str:
 
 
 def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
-    """Instantiate the component of ``group`` with its run-time arguments.
+    """Instantiate the component of ``group`` (a dotted path for an observer,
+    ``observers.log``) with its run-time arguments.
 
     Raises:
         ConfigError: for a missing or unloadable ``_target_``, a parameter the class
             does not take or lacks, a refused parameter (:class:`ParameterError`), or
             an object that does not implement the group's protocol.
     """
-    node = cfg.get(group)
+    node = OmegaConf.select(cfg, group, default=None)
     if not isinstance(node, DictConfig) or "_target_" not in node:
         raise ConfigError(group, node, "a component config with _target_ (see docs/extending.md)")
     try:
@@ -102,15 +111,80 @@ def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
         # a constructor sees only config values and run-time objects: whatever it
         # raises (a list of the wrong length, an overflow) is a refused config
         raise ConfigError(group, target, _first_line(err)) from None
-    protocol = PROTOCOLS[group]
+    protocol = PROTOCOLS[group.split(".")[0]]
     if not isinstance(obj, protocol):
         raise ConfigError(f"{group}._target_", target, f"must implement {protocol.__name__}")
     return obj
 
 
+def _named(factory_target: Any, runtime: dict[str, Any]) -> dict[str, Any]:
+    """The run-time arguments an observer's constructor names (all of them when it takes
+    ``**kwargs``).
+    """
+    try:
+        params = inspect.signature(factory_target).parameters
+    except (TypeError, ValueError):
+        return runtime
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return runtime
+    return {k: v for k, v in runtime.items() if k in params}
+
+
+def observers(cfg: DictConfig, **runtime: Any) -> dict[str, Observer]:
+    """The observers of ``cfg.observers``, in config order, each given the run-time
+    arguments its constructor names (:mod:`harness.observers`).
+
+    Raises:
+        ConfigError: as :func:`component`, naming ``observers.<name>...``.
+    """
+    node = cfg.get("observers")
+    if node is None:
+        return {}
+    if not isinstance(node, DictConfig):
+        raise ConfigError("observers", node, "a dict of observers (conf/observers/)")
+    out = {}
+    for key in node.keys():
+        name = str(key)
+        group = f"observers.{name}"
+        entry = node.get(name)
+        if not isinstance(entry, DictConfig) or "_target_" not in entry:
+            raise ConfigError(group, entry, "an observer config with _target_")
+        try:
+            target = hydra.utils.get_object(str(entry._target_))
+        except Exception:
+            target = None  # component() names the unloadable target
+        out[name] = component(cfg, group, **_named(target, runtime))
+    return out
+
+
+def _check_parts(plant: Plant, estimator: Estimator, control: Control) -> None:
+    """Each component's own ``check`` of the others (:mod:`harness.components`)."""
+    for part in (plant, estimator, control):
+        check = getattr(part, "check", None)
+        if check is None:
+            continue
+        try:
+            check(plant=plant, estimator=estimator, control=control)
+        except Incompatible as err:
+            raise ConfigError(err.name, err.value, err.allowed) from None
+
+
 @dataclass(frozen=True)
 class Experiment:
-    """The built components of one run (see :func:`build`)."""
+    """Everything one run needs (see :func:`build`).
+
+    Attributes:
+        grid, target, init, p0, model, plant, estimator, control: The components.
+        observers: The observers by name, in the order they see each step.
+        seed: The run's seed.
+        dt: Step (s).
+        steps: Number of steps.
+        identity: The config and provenance records of the log.
+        disk: The log's size estimate.
+        keys: The public config key of each observer parameter
+            (``"observers.live.port" -> "log.live_port"``), for errors raised when the
+            run starts.
+    """
 
     grid: Grid
     target: Target
@@ -120,15 +194,31 @@ class Experiment:
     plant: Plant
     estimator: Estimator
     control: Control
+    observers: dict[str, Observer]
+    seed: int
+    dt: float
+    steps: int
+    identity: RunIdentity
+    disk: DiskNeed
+    keys: dict[str, str]
+
+    @property
+    def robots(self) -> int:
+        """The plant's number of robots (0 without robots)."""
+        n = getattr(self.plant, "n", 0) if self.plant.has_robots else 0
+        return int(n or 0)
 
 
 def build(cfg: DictConfig) -> Experiment:
-    """All components of a closed-loop config, checked.
+    """Everything a run of ``cfg`` needs, checked; the only reader of the config.
 
     In order: every interpolation resolves, every key is read by something, the
     shared blocks, the memory the run will need (estimated from the components'
-    parameters before any of them allocates), the components, the checks across them.
-    Building draws no random numbers: robots are placed by ``plant.start(rng)``.
+    parameters before any of them allocates), the components, each component's own
+    check of the others, the step bound, the observers, the log's size and identity.
+    Building draws no random numbers (robots are placed by ``plant.start(rng)``),
+    writes nothing and opens nothing (observers open files and ports when the run
+    starts).
 
     Raises:
         ConfigError: for the first value that is not allowed.
@@ -145,5 +235,26 @@ def build(cfg: DictConfig) -> Experiment:
     control = component(cfg, "control", target=target)
     plant = component(cfg, "plant", grid=grid, model=model, init=init, control=control)
     estimator = component(cfg, "estimator", grid=grid, model=model)
+    _check_parts(plant, estimator, control)
     check_built(cfg, grid, target, control, plant, estimator)
-    return Experiment(grid, target, init, p0, model, plant, estimator, control)
+    steps = round(cfg.sim.t_final / cfg.sim.dt)
+    identity = identify(cfg)
+    watching = observers(
+        cfg, grid=grid, target=target, control=control, plant=plant, steps=steps, identity=identity
+    )
+    robots = int(getattr(plant, "n", 0) or 0) if plant.has_robots else 0
+    keys = {
+        f"observers.{name}.{param}": public_key(cfg, f"observers.{name}", str(param))
+        for name in watching
+        for param in cfg.observers[name]
+    }
+    return Experiment(
+        grid, target, init, p0, model, plant, estimator, control,
+        observers=watching,
+        seed=int(cfg.seed),
+        dt=float(cfg.sim.dt),
+        steps=steps,
+        identity=identity,
+        disk=disk_need(cfg, grid, robots),
+        keys=keys,
+    )  # fmt: skip

@@ -14,6 +14,7 @@ import re
 import shutil
 import warnings
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -51,8 +52,9 @@ its noise constants ``k ~ 1 / h^2``, ``k_g ~ 1 / h^4`` overflow for tiny ``h``."
 SHARED_BLOCKS = ("grid", "agents", "dynamics", "sim", "kde", "log")
 """Config blocks every run needs."""
 
-GROUPS = ("plant", "estimator", "control", "target", "init")
-"""Config groups whose node is one component (``_target_`` and its parameters)."""
+GROUPS = ("plant", "estimator", "control", "target", "init", "observers")
+"""Config groups whose node is one component (``_target_`` and its parameters), or a
+dict of them (``observers``)."""
 
 SHARED_KEYS = frozenset(
     {
@@ -81,9 +83,16 @@ SHARED_KEYS = frozenset(
 component nodes must be read by a component through interpolation
 (:func:`check_unread`)."""
 
-PRESENTATION_KEYS = ("log.progress", "log.live", "log.live_host", "log.live_port")
-"""Keys that change how a run is shown, not what it computes or logs (left out of the
-config hash, :func:`harness.jobs.config_hash`)."""
+PRESENTATION_KEYS = (
+    "log.progress",
+    "log.live",
+    "log.live_host",
+    "log.live_port",
+    "observers.progress",
+    "observers.live",
+)
+"""Keys (and observers) that change how a run is shown, not what it computes or logs
+(left out of the config hash, :func:`harness.identity.config_hash`)."""
 
 _REFERENCE = re.compile(r"\$\{\s*([A-Za-z_][\w.]*)\s*\}")
 
@@ -340,36 +349,55 @@ def log_estimate(cfg: DictConfig, grid: Grid, robots: int) -> int:
     return steps * LOG_BYTES_PER_STEP + fields + points
 
 
-def check_disk(cfg: DictConfig, grid: Grid, robots: int, out_dir: Path) -> int:
-    """Refuse a run whose log (:func:`log_estimate`) is larger than the free space of
-    the file system that will hold ``out_dir``.
+@dataclass(frozen=True)
+class DiskNeed:
+    """The log's size estimate (bytes, :func:`log_estimate`), the run's steps, and the
+    key to name when the log does not fit (``key=value``).
+    """
+
+    nbytes: int
+    key: str
+    value: Any
+    steps: int
+
+
+def disk_need(cfg: DictConfig, grid: Grid, robots: int) -> DiskNeed:
+    """The log's size estimate, naming ``log.positions_every`` when the robots'
+    positions are most of it, else ``log.field_every``.
+    """
+    need = log_estimate(cfg, grid, robots)
+    steps = round(cfg.sim.t_final / cfg.sim.dt)
+    points = robots * 12 * steps / cfg.log.positions_every
+    key = "log.positions_every" if points > need / 2 else "log.field_every"
+    return DiskNeed(need, key, OmegaConf.select(cfg, key), steps)
+
+
+def check_disk(need: DiskNeed, out_dir: Path) -> int:
+    """Refuse a run whose log (:func:`disk_need`) is larger than the free space of the
+    file system that will hold ``out_dir``.
 
     Returns:
         The estimate (bytes).
 
     Raises:
-        ConfigError: naming ``log.field_every`` (or ``log.positions_every`` when the
-            robots dominate), with the estimate and the free space.
+        ConfigError: naming the key of ``need``, with the estimate and the free space.
     """
-    need = log_estimate(cfg, grid, robots)
     existing = Path(out_dir).absolute()
     while not existing.exists() and existing != existing.parent:
         existing = existing.parent
     try:
         free = shutil.disk_usage(existing).free
     except OSError:
-        return need
-    if need > free:
-        steps = round(cfg.sim.t_final / cfg.sim.dt)
-        points = robots * 12 * steps / cfg.log.positions_every
-        key = "log.positions_every" if points > need / 2 else "log.field_every"
+        return need.nbytes
+    if need.nbytes > free:
         raise ConfigError(
-            key,
-            OmegaConf.select(cfg, key),
-            f"the log would need about {_size(need)} ({steps} steps, uncompressed) and "
-            f"{existing} has {_size(free)} free; log less often or shorten sim.t_final",
+            need.key,
+            need.value,
+            f"the log would need about {_size(need.nbytes)} ({need.steps} steps, "
+            f"uncompressed) and {existing} has {_size(free)} free; log less often or "
+            "shorten sim.t_final",
         )
-    return need
+    return need.nbytes
 
 
 def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
@@ -407,18 +435,10 @@ def resolution(plant: Any, estimator: Any) -> float | None:
     return of(measured) if callable(of) else None
 
 
-def _defined_by(cls: type, name: str) -> type | None:
-    """The class in ``cls``'s MRO whose body defines ``name`` (None when no class body
-    does, e.g. an instance attribute).
-    """
-    return next((base for base in cls.__mro__ if name in vars(base)), None)
-
-
 def check_built(
     cfg: DictConfig, grid: Grid, target: Target, control: Control, plant: Any, estimator: Any
 ) -> None:
-    """Checks across components: a decentralised estimator needs robots and a law with
-    ``at_cells``; the sampled-data step bound
+    """The check across components that none can make alone: the sampled-data step bound
     (:func:`harness.control.sampled_data_dt_bound`) of the control law near the target,
     for the resolution of the estimates the plant and estimator give (:func:`resolution`).
 
@@ -429,27 +449,6 @@ def check_built(
     A law without :meth:`~harness.components.Control.feedback_diffusivity` (or returning
     None) is not refused; a :class:`ConfigWarning` says the bound was not checked.
     """
-    if getattr(estimator, "decentralised", False):
-        if not getattr(plant, "has_robots", False):
-            raise ConfigError(
-                "plant", type(plant).__name__,
-                "a plant with robots (plant=agents): every robot of estimator=distributed "
-                "estimates and moves on its own",
-            )  # fmt: skip
-        if not callable(getattr(control, "at_cells", None)):
-            raise ConfigError(
-                "control", type(control).__name__,
-                "a law each robot can evaluate at its own cells (a method at_cells, see "
-                "harness.control.PaperControl.at_cells) for estimator=distributed",
-            )  # fmt: skip
-        law, cells = _defined_by(type(control), "__call__"), _defined_by(type(control), "at_cells")
-        if law is not None and cells is not None and law is not cells and issubclass(law, cells):
-            raise ConfigError(
-                "control", type(control).__name__,
-                f"a law whose at_cells is its own: {law.__name__} overrides __call__ but "
-                f"inherits at_cells from {cells.__name__}, so each robot of "
-                "estimator=distributed would move by the parent's law; define at_cells",
-            )  # fmt: skip
     rate = getattr(control, "feedback_diffusivity", None)
     diffusivity = rate(target.p) if rate is not None else None
     if diffusivity is None:

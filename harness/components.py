@@ -1,6 +1,6 @@
 """The component protocols of the closed loop, and how a component refuses a parameter.
 
-    plant --Measurement--> estimator --Estimate (p_hat, q_hat)--> control --v--> plant
+    plant --Measurement--> estimator --Estimate--> control --Command--> plant
 
 Each option of each config group (``plant``, ``estimator``, ``control``, ``target``,
 ``init``) is a class implementing one of these protocols plus a YAML file with
@@ -20,6 +20,11 @@ Run-time keyword arguments, by group:
 * ``estimator``: ``grid``, ``model``;
 * ``control``: ``target`` (:class:`~harness.densities.Target`).
 
+Compatibility across components is each component's own: a plant, estimator or control
+may define ``check(plant=..., estimator=..., control=...)`` (keyword arguments; accept
+``**parts`` for the ones not needed), which the builder calls once all three are built
+and which raises :class:`Incompatible` for a combination it cannot run.
+
 See ``docs/extending.md`` for a complete example of each.
 """
 
@@ -32,8 +37,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from harness.grid import Grid
-from harness.records import Estimate, Measurement, StepInput
-from harness.velocity import VelocityField
+from harness.records import Command, ControlInput, Estimate, Measurement, StepInput
 
 
 class ParameterError(ValueError):
@@ -49,6 +53,12 @@ class ParameterError(ValueError):
     def __init__(self, name: str, value: Any, allowed: str) -> None:
         self.name, self.value, self.allowed = name, value, allowed
         super().__init__(f"{name}={value!r}: {allowed}")
+
+
+class Incompatible(ParameterError):
+    """A combination of components that cannot run together (raised by a component's
+    ``check``); ``name`` is the config group to change (``"control"``, ``"plant"``).
+    """
 
 
 def _is_number(x: Any) -> bool:
@@ -111,24 +121,23 @@ class Plant(Protocol):
             state (``meanfield``) or the loop's deterministic ``N -> infinity`` limit
             (``agents``).
         positions: Robot positions ``(2, N)`` (length), or None without robots.
-
-    Optional: ``has_robots = True`` for a plant whose robots can move by velocities of
-    their own (``VelocityField.robots``, decentralised control); validation refuses
-    ``estimator=distributed`` on a plant without it.
+        has_robots: Whether the plant has robots (``positions`` after ``start``), which
+            move by a command's own velocities when it has them.
     """
 
     density: np.ndarray
     positions: np.ndarray | None
+    has_robots: bool
 
     def start(self, rng: np.random.Generator) -> None:
         """Place the initial state (robots are drawn from ``init`` with ``rng``)."""
         ...
 
     def advance(
-        self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
+        self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
     ) -> None:
-        """Move over one step of ``dt`` (s) under the held velocity ``v``; ``a`` is
-        ``A(v)``, the Fokker-Planck matrix of ``v``.
+        """Move over one step of ``dt`` (s) under the held command; ``a`` is ``A(v)``,
+        the Fokker-Planck matrix of the command's field ``v`` (None without a field).
         """
         ...
 
@@ -158,19 +167,24 @@ class Estimator(Protocol):
 
 @runtime_checkable
 class Control(Protocol):
-    """A feedback law: estimates in, velocity field out."""
+    """A control law: what it uses in (the estimate, the robots' positions, the time),
+    a command out (a velocity field on the grid, one velocity per robot, or both).
 
-    def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
-        """The velocity field (length / s) for ``p_hat`` (1 / length^2) and ``q_hat``
-        (1 / length^3).
-        """
+    Attributes:
+        gives_field: Whether every command has a field. The mean-field plant, the
+            agents plant's ``N -> infinity`` limit and the filters' transport model need
+            one, and refuse a law without (their ``check``).
+        own_estimates: Whether the law moves each robot by the law of the robot's own
+            estimate when the estimate carries them (``Estimate.robots``); an estimator
+            whose robots estimate on their own refuses a law without.
+    """
+
+    gives_field: bool
+    own_estimates: bool
+
+    def __call__(self, inp: ControlInput) -> Command:
+        """The command at ``inp.t`` (velocities in length / s)."""
         ...
-
-    # Optional, for decentralised loops (``estimator=distributed``, where each robot
-    # evaluates the law on its own estimate): ``at_cells(p, qx, qy, cells) -> (vx, vy)``,
-    # the law's cell-centre values at flat cell indices from estimates given there
-    # (see harness.control.PaperControl.at_cells). Validation refuses a law without it
-    # in such a loop.
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float | None:
         """Largest diffusivity (length^2 / s) the held feedback acts with, for a start

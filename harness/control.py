@@ -1,10 +1,12 @@
-"""Density feedback laws (config group ``control``): estimates in, velocity field out.
+"""Density feedback laws (config group ``control``): estimates in, commands out.
 
 :class:`PaperControl` (``control=paper``) and :class:`HeatControl` (``control=heat``)
-implement :class:`harness.components.Control`; the functions :func:`paper_law` and
-:func:`heat_law` hold the equations. Both laws take the density estimate ``p_hat``
-(``(ny, nx)``, 1 / length^2), the gradient estimate ``q_hat`` (``(2, ny, nx)``,
-1 / length^3), the target (``p_*``, ``grad p_*`` and ``log p_*`` on the grid, see
+are field laws (:class:`FieldLaw`): a velocity field of the estimates, which robots
+follow by interpolation or, when each robot holds its own estimate, evaluate on their
+own (:mod:`harness.robot_law`). They implement :class:`harness.components.Control`; the
+functions :func:`paper_law` and :func:`heat_law` hold the equations. Both laws take the
+density estimate ``p_hat`` (``(ny, nx)``, 1 / length^2), the gradient estimate
+``q_hat`` (``(2, ny, nx)``, 1 / length^3), the target (``p_*``, ``grad p_*`` and ``log p_*`` on the grid, see
 :class:`harness.densities.Target`), the gain ``alpha >= 0`` (length^4 / time, so that
 ``alpha grad(p / p_*)`` is a velocity) and the noise intensity ``sigma >= 0``
 (length^2 / time), and return a :class:`~harness.velocity.VelocityField` (length / time).
@@ -12,12 +14,16 @@ implement :class:`harness.components.Control`; the functions :func:`paper_law` a
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 
 from harness.components import flag, number
 from harness.densities import Target
 from harness.grid import Grid
 from harness.kernels import paper_velocity
+from harness.records import Command, ControlInput
+from harness.robot_law import own_velocities
 from harness.smoothing import smoothed_target, transfer
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
 
@@ -223,7 +229,76 @@ def sampled_data_dt_bound(
     return 2.0 / denominator
 
 
-class PaperControl:
+class FieldLaw:
+    """A law whose command is a velocity field of the estimates ``(p_hat, q_hat)``.
+
+    A subclass defines :meth:`field` (the law on the grid) and, so that each robot can
+    move by the law of its own estimate, :meth:`at_cells` (the same law's cell-centre
+    values at given cells). :meth:`__call__` gives the field of the estimate and, when
+    the estimate carries each robot's own (``estimate.robots``), each robot's velocity
+    from its own estimate at its own position (:func:`harness.robot_law.own_velocities`).
+
+    Attributes:
+        target: The target on the grid.
+        gives_field: True: every command has the field.
+        own_estimates: Whether the law evaluates each robot's own estimate: true for a
+            class that defines :meth:`at_cells` itself, or inherits both :meth:`field`
+            and :meth:`at_cells` (a subclass that redefines :meth:`field` without
+            :meth:`at_cells` would move each robot by its parent's law, so it is false
+            there). Set when the class is created.
+    """
+
+    gives_field: ClassVar[bool] = True
+    own_estimates: ClassVar[bool] = False
+    target: Target
+
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        defines = vars(cls)
+        if "at_cells" in defines:
+            cls.own_estimates = True
+        elif "field" in defines:
+            cls.own_estimates = False
+
+    def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
+        """The velocity field (length / s) of ``p_hat`` (1 / length^2) and ``q_hat``
+        (1 / length^3).
+        """
+        raise NotImplementedError
+
+    def at_cells(
+        self, p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The cell-centre values of :meth:`field` at flat cell indices ``cells``, from
+        estimates ``p``, ``qx``, ``qy`` given at those cells (any common shape); returns
+        ``(vx, vy)`` (length / s).
+        """
+        raise NotImplementedError
+
+    def __call__(self, inp: ControlInput) -> Command:
+        """The field of the estimate; with each robot's own estimate, each robot's own
+        velocity too (the class docstring).
+
+        Raises:
+            ValueError: for robots' own estimates given to a law without
+                ``own_estimates``, or without the robots' positions.
+        """
+        est = inp.estimate
+        v = self.field(est.p_hat, est.q_hat)
+        own = est.robots
+        if own is None:
+            return Command(v)
+        if not self.own_estimates or inp.positions is None:
+            raise ValueError(
+                f"{type(self).__name__} cannot move robots by their own estimates "
+                "(it has no at_cells of its own, or the plant has no robots)"
+            )
+        grid = self.target.grid
+        robots = own_velocities(grid, self.at_cells, own.p_hat, inp.positions, own.q_hat)
+        return Command(v, robots)
+
+
+class PaperControl(FieldLaw):
     """The paper's law (``control=paper``), :func:`paper_law` with fixed gains.
 
     Debiased law (``kde.debias=true``). The KDE measures ``p~ = K_h * p``, the density
@@ -280,18 +355,17 @@ class PaperControl:
         self.sigma = number("sigma", sigma, 0.0)
         self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
 
-    def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
+    def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The velocity by eq. ``modified density feedback law using estimates``."""
         return paper_law(p_hat, q_hat, self.target, self.alpha, self.sigma, self.feedback_target)
 
     def at_cells(
         self, p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The cell-centre values of :meth:`__call__` at flat cell indices ``cells``,
+        """The cell-centre values of :meth:`field` at flat cell indices ``cells``,
         from estimates ``p``, ``qx``, ``qy`` given at those cells (any common shape):
-        the law each robot evaluates at its own cells in a decentralised loop
-        (:func:`harness.distributed.decentralised_velocities`). Returns ``(vx, vy)``
-        (length / s).
+        the law each robot evaluates from its own estimate
+        (:func:`harness.robot_law.own_velocities`). Returns ``(vx, vy)`` (length / s).
         """
         f, t = self.feedback_target, self.target
         fp, fgx, fgy = f.p.ravel()[cells], f.grad[0].ravel()[cells], f.grad[1].ravel()[cells]
@@ -317,7 +391,7 @@ def _feedback_target(target: Target, debias: bool, bandwidth: float | None, mirr
     return smoothed_target(target, h, flag("mirror", mirror))
 
 
-class HeatControl:
+class HeatControl(FieldLaw):
     """The prior heat-equation law (``control=heat``), :func:`heat_law` with fixed gains.
 
     Args:
@@ -348,7 +422,7 @@ class HeatControl:
         self.noise_compensation = flag("noise_compensation", noise_compensation)
         self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
 
-    def __call__(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
+    def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The heat-equation law of :func:`heat_law`."""
         return heat_law(
             p_hat,
@@ -364,7 +438,7 @@ class HeatControl:
     def at_cells(
         self, p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The cell-centre values of :meth:`__call__` at flat cell indices ``cells``,
+        """The cell-centre values of :meth:`field` at flat cell indices ``cells``,
         from estimates given at those cells (see :meth:`PaperControl.at_cells`).
         """
         f = self.feedback_target

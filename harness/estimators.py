@@ -16,7 +16,10 @@ from __future__ import annotations
 import numpy as np
 
 from harness.components import (
+    Control,
+    Incompatible,
     MemoryEstimate,
+    Plant,
     ParameterError,
     default_memory,
     flag,
@@ -249,6 +252,17 @@ class FilterEstimator:
         extra = engine.memory_bytes(grid) if engine is not None else 0
         return MemoryEstimate(default_memory(grid).nbytes + extra, "method")
 
+    def check(self, control: Control, **parts: object) -> None:
+        """The filters' transport model is ``A(v)`` of the law's field: refuse a law
+        without one.
+        """
+        if not control.gives_field:
+            raise Incompatible(
+                "control", type(control).__name__,
+                "a law with a velocity field for estimator=filters (the filters' "
+                "transport model A(v) is the field's)",
+            )  # fmt: skip
+
     def _estimate(self, p_hat: np.ndarray, q_hat: np.ndarray) -> Estimate:
         return Estimate(p_hat, q_hat, *self.engine.traces)
 
@@ -320,7 +334,6 @@ class DistributedEstimator:
     """
 
     uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
-    decentralised = True
     GRADIENTS = ("grid", "filter")
 
     def __init__(
@@ -417,8 +430,28 @@ class DistributedEstimator:
             q_mean = g.gradient(p_mean)  # G is linear: the mean of G p_hat_i
         else:
             q_mean = est.q_hat.mean(axis=0).reshape(2, *g.shape)
-        robots = RobotEstimates(est.p_hat, est.q_hat, p_central, self.robot, network)
-        return Estimate(p_mean, q_mean, *self.central.traces, robots=robots)
+        fields = {"p_hat_central": p_central, "p_hat_robot": est.p_hat[self.robot].reshape(g.shape)}
+        return Estimate(
+            p_mean, q_mean, *self.central.traces,
+            robots=RobotEstimates(est.p_hat, est.q_hat), fields=fields, metrics=network,
+        )  # fmt: skip
+
+    def check(self, plant: Plant, control: Control, **parts: object) -> None:
+        """Every robot estimates and moves on its own: refuse a plant without robots and
+        a law that does not move each robot by its own estimate.
+        """
+        if not plant.has_robots:
+            raise Incompatible(
+                "plant", type(plant).__name__,
+                "a plant with robots (plant=agents): every robot of estimator=distributed "
+                "estimates and moves on its own",
+            )  # fmt: skip
+        if not getattr(control, "own_estimates", False):
+            raise Incompatible(
+                "control", type(control).__name__,
+                "a law that moves each robot by the law of its own estimate (a FieldLaw "
+                "with its own at_cells, harness.control) for estimator=distributed",
+            )  # fmt: skip
 
     def initialize(self, inp: StepInput) -> Estimate:
         """The graph and consensus at the first positions; every filter's start."""

@@ -55,9 +55,10 @@ from mcap.records import Message, Metadata
 from mcap.stream_reader import StreamReader
 from omegaconf import DictConfig, OmegaConf
 
-from harness.build import build
+from harness.build import Experiment, build
 from harness.checks import ConfigError, check_disk
-from harness.run import RunResult, Terminated, config_hash, run
+from harness.identity import config_hash
+from harness.run import RunResult, Terminated, run
 
 STATUS_FILE = "job_status.json"
 LOG_FILE = "run.mcap"
@@ -360,14 +361,27 @@ class SweepStatusCallback(Callback):
             sys.exit(status)
 
 
+_CHECKED: dict[str, Experiment] = {}
+"""Builds made by :class:`CheckCallback`, by config hash, until the run takes them."""
+
+
+def checked(cfg: DictConfig) -> DictConfig | Experiment:
+    """The build :class:`CheckCallback` made of ``cfg`` (handed on once, so a run is
+    built once), else ``cfg`` itself.
+    """
+    return _CHECKED.pop(config_hash(cfg), cfg)
+
+
 class CheckCallback(Callback):
-    """Checks a single run's config (by building its components), that its directory
-    holds no log yet and that the disk has room for the log, before Hydra creates the
-    output directory; a refused value prints its one line and exits with status 2.
+    """Checks a single run's config (by building it), that its directory holds no log
+    yet and that the disk has room for the log, before Hydra creates the output
+    directory; a refused value prints its one line and exits with status 2. The build
+    is handed on to the run (:func:`checked`).
     """
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Build the components once to check them; nothing is written."""
+        """Build the run to check it; nothing is written."""
+        _CHECKED.clear()
         try:
             parts = build(config)
             out = Path(str(config.hydra.run.dir))
@@ -377,10 +391,11 @@ class CheckCallback(Callback):
                     str(out),
                     "a directory without a run.mcap (it holds one already: not overwritten)",
                 )
-            check_disk(config, parts.grid, int(getattr(parts.plant, "n", 0) or 0), out)
+            check_disk(parts.disk, out)
         except ConfigError as err:
             print(err, file=sys.stderr)
             sys.exit(2)
+        _CHECKED[config_hash(config)] = parts
 
 
 @contextlib.contextmanager
@@ -423,7 +438,7 @@ def _set_aside(log: Path) -> Path:
     return target
 
 
-def _child(cfg: DictConfig, out: Path) -> None:
+def _child(cfg: Experiment, out: Path) -> None:
     """The job's own process: run it and record the outcome; exit status 0 after any
     recorded outcome (a killed process has none).
     """
@@ -444,7 +459,7 @@ def _child(cfg: DictConfig, out: Path) -> None:
     os._exit(0)
 
 
-def _run_isolated(cfg: DictConfig, out: Path) -> int:
+def _run_isolated(cfg: Experiment, out: Path) -> int:
     """Run :func:`_child` in a forked process and wait for it; its exit code (negative:
     killed by that signal). Signals to this process are passed on to the job.
     """
@@ -494,7 +509,7 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
         else:
             why = f"the log's status is {check.state}"
         try:
-            build(cfg)
+            built = build(cfg)
         except ConfigError as err:
             print(err, file=sys.stderr)
             write_status(out, state="invalid", reason=str(err), pid=0, **ident)
@@ -505,12 +520,12 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
         runs = _int(read_status(out).get("runs"), 0) + 1
         write_status(out, state="running", runs=runs, reason="", rerun_reason=why, pid=0, **ident)
         try:
-            code = _run_isolated(cfg, out)
+            code = _run_isolated(built, out)  # the child inherits the build
         except OSError as err:  # no process could be forked: run here
             print(f"job {job}: cannot fork ({err}); running in the worker", file=sys.stderr)
             code = 0
             try:
-                result = run(cfg, out, overwrite=True)
+                result = run(built, out, overwrite=True)
                 write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
             except Exception as err2:
                 write_status(out, state="aborted", reason=f"{type(err2).__name__}: {err2}")

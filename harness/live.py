@@ -18,7 +18,13 @@ shows the run's clock starting at the epoch.
 
 from __future__ import annotations
 
+import sys
+
 import foxglove
+
+from harness.components import ParameterError, flag, integer, require
+from harness.observers import RunContext, Status
+from harness.records import StepRecord
 
 DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8765
@@ -131,3 +137,45 @@ class LiveServer:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class LiveView:
+    """The observer ``live``: serves every message the log writes while the run goes.
+
+    Args:
+        enabled: Serve (``log.live``); off, the observer does nothing.
+        host: Address to bind (``log.live_host``).
+        port: TCP port, 0 to 65535 (``log.live_port``; 0: any free port).
+
+    :meth:`initialize` starts the server and adds it to the run's publishers, which the
+    logger (after this observer) hands every message; a port that cannot be served is a
+    refused ``port`` (:class:`~harness.components.ParameterError`), raised before the log
+    exists.
+    """
+
+    def __init__(self, enabled: bool = False, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT):
+        self.enabled = flag("enabled", enabled)
+        self.port = integer("port", port, 0)
+        require(self.port <= 65535, "port", port, "a TCP port, 0 to 65535 (0: any free port)")
+        require(isinstance(host, str) and bool(host), "host", host, "an address such as 127.0.0.1")
+        self.host = host
+        self.server: LiveServer | None = None
+
+    def initialize(self, run: RunContext) -> None:
+        """Start the server (when enabled) and say where it is, on standard error."""
+        if not self.enabled:
+            return
+        try:
+            self.server = LiveServer(self.host, self.port)
+        except LiveServerError as err:
+            raise ParameterError("port", self.port, str(err)) from None
+        run.publishers.append(self.server)
+        print(f"live view: {self.server.url} (Foxglove: Open connection)", file=sys.stderr)
+
+    def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
+        """Nothing: the logger publishes."""
+
+    def finalize(self, status: Status) -> None:
+        """Stop the server."""
+        if self.server is not None:
+            self.server.close()

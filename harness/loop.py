@@ -1,20 +1,19 @@
 """The closed loop of the paper's block diagram, one step at a time.
 
-    plant --measurement--> estimator --(p_hat, q_hat)--> control
-      ^                                                     |
-      +-------------- velocity field v on the grid <--------+
+    plant --measurement--> estimator --estimate--> control
+      ^                                               |
+      +------ command (a field, robots' velocities) <-+
 
-Step ``n -> n + 1`` (``v_n`` was computed at ``t_n`` and is held over the step):
+Step ``n -> n + 1`` (the command ``u_n`` was computed at ``t_n`` and is held over the
+step):
 
-1. the plant moves under ``v_n`` (:meth:`harness.components.Plant.advance`), with
-   ``A(v_n)`` assembled once and shared with the estimator;
+1. the plant moves under ``u_n`` (:meth:`harness.components.Plant.advance`), with the
+   Fokker-Planck matrix ``A(v_n)`` of the command's field assembled once and shared
+   with the estimator (None for a law without a field);
 2. the plant is measured at ``t_{n+1}`` (only when the estimator uses a measurement);
 3. the estimator predicts under ``v_n`` and updates with the measurement;
-4. the control gives ``v_{n+1}`` from ``(p_hat, q_hat)``; when the estimate carries
-   each robot's own estimate (``estimator=distributed``), each robot's velocity is the
-   law of its own estimate at its own position instead
-   (:func:`harness.distributed.decentralised_velocities`), and the field, the law of the
-   robots' mean estimate, is the filters' transport model.
+4. the control gives ``u_{n+1}`` from what it uses (:class:`~harness.records.ControlInput`:
+   the time, the estimate, the robots' positions).
 
 Errors are measured against the plant's mean-field density ``p`` (notes section 5):
 ``Phi = p - p_*``, ``eps = p_hat - p`` and ``eps_g = q_hat - grad p``, the states of the
@@ -24,15 +23,11 @@ system``); see :mod:`harness.metrics`.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from harness.components import Control, Estimator, Plant
-from harness.distributed import decentralised_velocities
 from harness.fokker_planck import FokkerPlanck, NumericalError
-from harness.records import Estimate, Measurement, StepInput, StepRecord
-from harness.velocity import VelocityField
+from harness.records import Command, ControlInput, Estimate, Measurement, StepInput, StepRecord
 
 
 class ClosedLoop:
@@ -65,7 +60,7 @@ class ClosedLoop:
         self.mass_drift = mass_drift
         self.mass0 = float("nan")
         self.n = 0
-        self.v: VelocityField | None = None
+        self.command: Command | None = None
 
     @property
     def t(self) -> float:
@@ -75,66 +70,57 @@ class ClosedLoop:
     def _measure(self) -> Measurement | None:
         return self.plant.measure(self.rng) if self.estimator.uses_kde else None
 
-    def _control(self, est: Estimate) -> VelocityField:
+    def _control(self, est: Estimate) -> Command:
         if not (np.isfinite(est.p_hat).all() and np.isfinite(est.q_hat).all()):
             raise NumericalError("the estimate became non-finite")
-        v = self.control(est.p_hat, est.q_hat)
-        if est.robots is not None:
-            # decentralised: robot i moves on the law of its own estimate, at its position
-            assert self.plant.positions is not None
-            law = self.control.at_cells  # type: ignore[attr-defined]
-            robots = est.robots
-            own = decentralised_velocities(
-                self.grid, law, robots.p_hat, self.plant.positions, robots.q_hat
-            )
-            v = dataclasses.replace(v, robots=own)
-        if not v.is_finite():
-            raise NumericalError("the velocity field became non-finite")
-        return v
+        command = self.control(ControlInput(self.t, est, self.plant.positions))
+        if not command.is_finite():
+            raise NumericalError("the command became non-finite")
+        return command
 
-    def _input(self, meas: Measurement | None, v: VelocityField | None, a) -> StepInput:
+    def _input(self, meas: Measurement | None, command: Command | None, a) -> StepInput:
         return StepInput(
             self.t,
             None if meas is None else meas.p,
             None if meas is None else meas.grad,
-            v,
+            None if command is None else command.field,
             a,
             self.plant.density,
             self.plant.positions,
         )
 
     def start(self) -> StepRecord:
-        """Start the plant, measure and estimate at ``t = 0`` and compute ``v_0``."""
+        """Start the plant, measure and estimate at ``t = 0`` and compute ``u_0``."""
         self.plant.start(self.rng)
         self.mass0 = self.grid.integrate(self.plant.density)
         meas = self._measure()
         est = self.estimator.initialize(self._input(meas, None, None))
-        self.v = self._control(est)
+        self.command = self._control(est)
         return self._record(meas, est)
 
     def step(self) -> StepRecord:
         """Advance by one step (see the module docstring)."""
-        assert self.v is not None, "call start first"
-        v = self.v
-        a = self.model.matrix(v)
-        self.plant.advance(v, a, self.dt, self.rng)
+        assert self.command is not None, "call start first"
+        command = self.command
+        a = None if command.field is None else self.model.matrix(command.field)
+        self.plant.advance(command, a, self.dt, self.rng)
         mass = self.grid.integrate(self.plant.density)
         if abs(mass - self.mass0) > self.mass_drift * self.mass0:
             raise NumericalError(f"mass drifted from {self.mass0:.15g} to {mass:.15g}")
         self.n += 1
         meas = self._measure()
-        est = self.estimator.step(self._input(meas, v, a))
-        self.v = self._control(est)
+        est = self.estimator.step(self._input(meas, command, a))
+        self.command = self._control(est)
         return self._record(meas, est)
 
     def _record(self, meas: Measurement | None, est: Estimate) -> StepRecord:
-        assert self.v is not None
+        assert self.command is not None
         return StepRecord(
             step=self.n,
             t=self.t,
             p_true=self.plant.density,
             measurement=meas,
             estimate=est,
-            velocity=self.v,
+            command=self.command,
             positions=self.plant.positions,
         )

@@ -8,14 +8,16 @@ Topics (a topic that does not apply to the plant or estimator is absent):
 
 * ``/fields/p_target`` (once, at t = 0), ``/fields/p_true``, ``/fields/p_kde``,
   ``/fields/p_hat``: ``foxglove.Grid`` with one float32 field ``p`` (1 / length^2);
-* with ``estimator=distributed``: ``/fields/p_hat`` is the robots' mean estimate,
-  ``/fields/p_hat_central`` the centralised filter's (the reference run alongside) and
-  ``/fields/p_hat_robot`` the estimate of robot ``estimator.robot`` (field ``p``);
+* ``/fields/<name>`` for each density field an estimator publishes
+  (``Estimate.fields``, field ``p``, 1 / length^2): with ``estimator=distributed``
+  ``/fields/p_hat`` is the robots' mean estimate, ``/fields/p_hat_central`` the
+  centralised filter's (the reference run alongside) and ``/fields/p_hat_robot`` the
+  estimate of robot ``estimator.robot``;
 * ``/fields/grad_kde``, ``/fields/grad_hat``: fields ``gx``, ``gy`` (1 / length^3);
 * ``/fields/velocity``: fields ``vx``, ``vy`` (length / s), the cell-centre values;
 * ``/swarm/positions``: ``foxglove.PointCloud`` with float32 ``x, y, z`` (z = 0);
-* ``/metrics``: JSON (schema encoding ``jsonschema``), one message per step, keys of
-  :func:`harness.metrics.metrics` (``null`` where not applicable).
+* ``/metrics``: JSON (schema encoding ``jsonschema``), one message per step, the keys
+  of :data:`METRIC_KEYS` in that order (``null`` where not applicable).
 
 Grids follow ``foxglove.Grid``: ``column_count = nx`` cells along x, rows along y
 starting at the pose origin ``(x0, y0, 0)``, ``cell_size = (dx, dy)``, little-endian
@@ -29,8 +31,9 @@ time; the only wall-clock values in the file), ``theory`` (``poincare_lambda``, 
 ``(alpha + sigma) lambda`` in 1 / s, the decay rate with exact estimates) and
 ``status`` (key ``state``: ``completed`` | ``aborted`` | ``diverged``, key
 ``reason``, key ``wall_s``: the run's wall time in s), written just before the
-file is finished. :meth:`McapLogger.finalize` always runs (the run loop calls it in a
-``finally`` block), so the summary and index are written also after an exception.
+file is finished. :meth:`McapLogger.finalize` always runs (the run calls every
+observer's in a ``finally`` block), so the summary and index are written also after an
+exception.
 """
 
 from __future__ import annotations
@@ -49,12 +52,50 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
+from harness.components import integer
+from harness.densities import Target
 from harness.grid import Grid
-from harness.metrics import ALWAYS_NUMBERS, METRIC_KEYS
+from harness.identity import RunIdentity
+from harness.observers import RunContext, Status
 from harness.records import StepRecord
 
 if TYPE_CHECKING:
     from harness.live import LiveServer
+
+METRIC_KEYS = (
+    "t",
+    "phi_l2",
+    "phat_target_l2",
+    "eps_l2",
+    "eps_g_l2",
+    "kde_l2",
+    "lyapunov",
+    "mass",
+    "trace_P",
+    "trace_Q",
+    "trace_P_grad",
+    "trace_Q_grad",
+    "swarm_l2",
+    "swarm_w2",
+    "est_swarm_l2",
+    "limit_swarm_l2",
+    "limit_target_l2",
+    "phat_smoothed_target_l2",
+    "consensus_l2",
+    "central_gap_l2",
+    "messages",
+    "mean_degree",
+    "components",
+    "algebraic_connectivity",
+)
+"""The keys of every ``/metrics`` message, in log order: the field metrics
+(:class:`harness.metrics.FieldMetrics`), the swarm metrics
+(:class:`harness.metrics.SwarmTruth`) and the numbers an estimator publishes
+(``Estimate.metrics``; the last six are the decentralised estimator's). A key no
+observer gave is ``null``."""
+
+ALWAYS_NUMBERS = ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
+"""Keys that are never null (the divergence guard's default)."""
 
 METRICS_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -79,6 +120,8 @@ FIELD_TOPICS = {
     "/fields/velocity": ("vx", "vy"),
     "/fields/p_target": ("p",),
 }
+"""The value names of each field topic; a published field not listed is a density
+(``p``)."""
 
 
 def time_ns(t: float) -> int:
@@ -130,37 +173,58 @@ def _json_number(x: Any) -> float | None:
 
 
 class McapLogger:
-    """Writes a run's ``run.mcap`` (see the module docstring).
+    """Writes a run's ``run.mcap`` (see the module docstring): the observer ``log``.
 
     Args:
-        path: Output file.
-        grid: The grid.
-        config_yaml: The resolved config as YAML text.
-        provenance: String key-value pairs for the ``provenance`` record.
+        grid, target: Run-time arguments (the target is logged once, at t = 0).
+        steps: The run's last step (run-time argument; it always logs fields).
+        identity: The config and provenance records (run-time argument).
         field_every: Steps between field messages (``>= 1``).
         positions_every: Steps between position messages (``>= 1``).
-        total_steps: Number of steps of the run (the last one always logs fields).
-        live: Also publish every message to this live server (``harness.live``): same
-            topics, schemas and bytes; the file is written exactly as without it.
+        file: The log's file name in the run directory.
+
+    :meth:`initialize` opens the file (and hands every message to the run's live
+    servers, ``RunContext.publishers``: same topics, schemas and bytes; the file is
+    written exactly as without them) and writes the target; the first :meth:`handle`
+    writes the ``theory`` record the observers before it filled.
     """
 
     def __init__(
         self,
-        path: Path,
         grid: Grid,
-        config_yaml: str,
-        provenance: dict[str, str],
+        target: Target,
+        steps: int,
+        identity: RunIdentity,
         field_every: int,
         positions_every: int,
-        total_steps: int,
-        live: LiveServer | None = None,
+        file: str = "run.mcap",
     ) -> None:
-        self.path, self.grid = Path(path), grid
-        self.live = live
+        self.grid, self.target, self.identity = grid, target, identity
+        self.field_every = integer("field_every", field_every, 1)
+        self.positions_every = integer("positions_every", positions_every, 1)
+        self.total_steps = steps
+        self.file = file
+        self.path = Path(file)
+        self.live: LiveServer | None = None
+        self.run: RunContext | None = None
+        self._opened = False
+        self._finished = False
+        self.seconds = 0.0  # wall time spent logging steps (s)
+
+    def initialize(self, run: RunContext) -> None:
+        """Open ``run.out_dir / file`` and write the target."""
+        self.run = run
+        self.open(run.out_dir / self.file, run.publishers[0] if run.publishers else None)
+        self.write_target(self.target.p)
+
+    def open(self, path: Path, live: LiveServer | None = None) -> None:
+        """Create the file, register the schemas and write the ``config`` and
+        ``provenance`` records; also publish every message to ``live`` when given.
+        """
+        self.path, self.live = Path(path), live
         self._schema_defs: dict[int, tuple[str, str, bytes]] = {}
-        self.field_every, self.positions_every = field_every, positions_every
-        self.total_steps = total_steps
         self._file = open(self.path, "wb")
+        self._opened = True
         # data-section CRC too: metadata records outside chunks are then protected as well
         self._writer = McapWriter(
             self._file, compression=CompressionType.ZSTD, enable_data_crcs=True
@@ -176,10 +240,8 @@ class McapLogger:
             encoding="jsonschema",
             data=json.dumps(METRICS_SCHEMA).encode(),
         )
-        self._writer.add_metadata("config", {"yaml": config_yaml})
-        self._writer.add_metadata("provenance", provenance)
-        self._finished = False
-        self.seconds = 0.0  # wall time spent logging steps (s)
+        self._writer.add_metadata("config", {"yaml": self.identity.config_yaml})
+        self._writer.add_metadata("provenance", self.identity.provenance)
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         """Register a schema in the file (and keep it for the live view); its id."""
@@ -213,7 +275,7 @@ class McapLogger:
 
     def write_grid(self, topic: str, t: float, values: np.ndarray) -> None:
         """A field message on ``topic`` (fields named as in :data:`FIELD_TOPICS`)."""
-        msg = grid_message(self.grid, t, FIELD_TOPICS[topic], values)
+        msg = grid_message(self.grid, t, FIELD_TOPICS.get(topic, ("p",)), values)
         self._write(topic, t, msg.SerializeToString(), self._grid_schema, "protobuf")
 
     def write_target(self, p_target: np.ndarray) -> None:
@@ -221,9 +283,13 @@ class McapLogger:
         self.write_grid("/fields/p_target", 0.0, p_target)
 
     def handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
-        """Log one step: metrics always, fields and positions at their rates."""
+        """Log one step: metrics always, fields and positions at their rates (and,
+        with the start record, the ``theory`` record).
+        """
         t0 = time.perf_counter()
         try:
+            if rec.step == 0 and self.run is not None:
+                self.add_metadata("theory", dict(self.run.theory))
             self._handle(rec, metric_values)
         finally:
             self.seconds += time.perf_counter() - t0
@@ -240,23 +306,25 @@ class McapLogger:
                 self.write_grid("/fields/grad_kde", t, rec.measurement.grad)
             self.write_grid("/fields/p_hat", t, rec.estimate.p_hat)
             self.write_grid("/fields/grad_hat", t, rec.estimate.q_hat)
-            self.write_grid("/fields/velocity", t, rec.velocity.centres)
-            robots = rec.estimate.robots
-            if robots is not None:
-                shape = rec.p_true.shape
-                self.write_grid("/fields/p_hat_central", t, robots.p_central)
-                self.write_grid("/fields/p_hat_robot", t, robots.p_hat[robots.robot].reshape(shape))
+            if rec.command.field is not None:
+                self.write_grid("/fields/velocity", t, rec.command.field.centres)
+            for name, values in rec.estimate.fields.items():
+                self.write_grid(f"/fields/{name}", t, values)
         if rec.positions is not None and (rec.step % self.positions_every == 0 or last):
             msg = points_message(rec.t, rec.positions)
             self._write(
                 "/swarm/positions", rec.t, msg.SerializeToString(), self._points_schema, "protobuf"
             )
 
-    def finalize(self, state: str, reason: str = "", wall_s: float | None = None) -> None:
+    def finalize(self, status: Status) -> None:
+        """Close the log with the run's status (:meth:`close`)."""
+        self.close(status.state, status.reason, status.wall_s)
+
+    def close(self, state: str, reason: str = "", wall_s: float | None = None) -> None:
         """Write the ``status`` record (``state``, ``reason`` and, when given, the run's
         wall time ``wall_s`` in s), the summary and index, and close the file.
         """
-        if self._finished:
+        if self._finished or not self._opened:
             return
         self._finished = True
         status = {"state": state, "reason": reason}

@@ -2,7 +2,8 @@
 
 All L2 norms are :meth:`harness.grid.Grid.l2`, ``(dx dy sum f^2)^(1/2)``.
 
-Two families. The field metrics (:func:`metrics`) compare the estimates and the plant's
+Two families, each an observer of the run (:mod:`harness.observers`). The field
+metrics (:func:`metrics`, observer :class:`FieldMetrics`) compare the estimates and the plant's
 mean-field density ``p`` (the ``meanfield`` plant's state; the ``agents`` plant's
 deterministic ``N -> infinity`` limit ``p_inf``) with the target. The swarm metrics
 (:class:`SwarmTruth`) say where the robots are, independently of every estimator,
@@ -24,59 +25,26 @@ swarm more evenly than independent samples, so a controlled swarm may sit below 
 ``phat_smoothed_target_l2`` = ``||p_hat - K_h p_*||`` (every step) is the Fig. 2
 quantity for a debiased loop, whose estimates settle on ``K_h p_*``, not ``p_*``.
 
-The decentralised loop (``estimator=distributed``) adds its graph and consensus
-figures (:func:`network_metrics`); there ``p_hat`` is the robots' mean estimate.
+Which keys the log carries, and in which order, is the log's contract
+(:data:`harness.mcap_log.METRIC_KEYS`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from harness.components import Control, integer, number
 from harness.densities import Target
 from harness.grid import Grid
 from harness.kde import KDE
+from harness.observers import RunContext, Status
 from harness.records import StepRecord
 from harness.smoothing import Smoother, smoothed_target
 from harness.swarm_metrics import TargetMeasure, floors, swarm_w2, w2_method
-from harness.theory import lyapunov
-
-METRIC_KEYS = (
-    "t",
-    "phi_l2",
-    "phat_target_l2",
-    "eps_l2",
-    "eps_g_l2",
-    "kde_l2",
-    "lyapunov",
-    "mass",
-    "trace_P",
-    "trace_Q",
-    "trace_P_grad",
-    "trace_Q_grad",
-    "swarm_l2",
-    "swarm_w2",
-    "est_swarm_l2",
-    "limit_swarm_l2",
-    "limit_target_l2",
-    "phat_smoothed_target_l2",
-    "consensus_l2",
-    "central_gap_l2",
-    "messages",
-    "mean_degree",
-    "components",
-    "algebraic_connectivity",
-)
-"""The keys of :func:`metrics` and :class:`SwarmTruth`, in log order."""
+from harness.theory import lyapunov, poincare_constant
 
 SWARM_KEYS = ("swarm_l2", "swarm_w2", "est_swarm_l2", "limit_swarm_l2", "limit_target_l2")
 """The swarm metrics (null between their steps and without robots)."""
-
-NETWORK_KEYS = METRIC_KEYS[-6:]
-"""The decentralised loop's metrics (null unless ``estimator=distributed``); see
-:class:`harness.estimators.DistributedEstimator` and :mod:`harness.distributed`."""
-
-ALWAYS_NUMBERS = ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
-"""Keys that are never null."""
 
 
 def metrics(grid: Grid, target: Target, rec: StepRecord) -> dict[str, float | None]:
@@ -105,25 +73,39 @@ def metrics(grid: Grid, target: Target, rec: StepRecord) -> dict[str, float | No
         "trace_Q": est.trace_Q,
         "trace_P_grad": est.trace_P_grad,
         "trace_Q_grad": est.trace_Q_grad,
-    } | network_metrics(rec)
+    }
 
 
-def network_metrics(rec: StepRecord) -> dict[str, float | None]:
-    """The decentralised loop's metrics, None unless the robots estimate on their own:
+class FieldMetrics:
+    """The field metrics of every step (:func:`metrics`; observer ``metrics``), and in
+    the ``theory`` record the ``p_*``-weighted Poincare constant ``poincare_lambda``
+    (1 / length^2, :func:`harness.theory.poincare_constant`) and, for laws with a gain
+    ``alpha``, the exact-estimate decay rate ``rate_exact`` = ``(alpha + sigma) lambda``
+    (1 / s).
 
-    ``consensus_l2`` = mean over robots of ``||p_hat_i - mean_j p_hat_j||`` (1 / length);
-    ``central_gap_l2`` = mean over robots of ``||p_hat_i - p_hat_central||`` (1 / length),
-    against the centralised filters run alongside; ``messages`` = consensus messages per
-    robot per step (one message: one robot's tracked fields, ``F M`` float64, to one
-    neighbour in one round); ``mean_degree`` (neighbours per robot); ``components``
-    (connected components of the communication graph); ``algebraic_connectivity`` =
-    ``lambda_2`` of the graph Laplacian (1; 0 when disconnected), evaluated every
-    ``estimator.connectivity_every`` steps and held in between.
+    Args:
+        grid, target, control: Run-time arguments.
+        sigma: The robots' noise intensity (length^2 / s), for ``rate_exact``.
     """
-    robots = rec.estimate.robots
-    if robots is None:
-        return dict.fromkeys(NETWORK_KEYS)
-    return {key: float(robots.network[key]) for key in NETWORK_KEYS}
+
+    def __init__(self, grid: Grid, target: Target, control: Control, sigma: float) -> None:
+        self.grid, self.target, self.control = grid, target, control
+        self.sigma = number("sigma", sigma, 0.0)
+
+    def initialize(self, run: RunContext) -> None:
+        """``poincare_lambda`` and ``rate_exact`` into the theory record."""
+        lam = poincare_constant(self.grid, self.target.p)
+        run.theory["poincare_lambda"] = repr(lam)
+        alpha = getattr(self.control, "alpha", None)
+        if isinstance(alpha, float):
+            run.theory["rate_exact"] = repr((alpha + self.sigma) * lam)
+
+    def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
+        """The step's field metrics."""
+        values.update(metrics(self.grid, self.target, rec))
+
+    def finalize(self, status: Status) -> None:
+        """Nothing to close."""
 
 
 class SwarmTruth:
@@ -136,28 +118,42 @@ class SwarmTruth:
     the run's KDE settings, so ``swarm_l2`` of N robots drawn from ``p_*`` has the
     finite-N floor of :meth:`floors`.
 
+    As the observer ``swarm`` it adds these metrics to every step's values and, at the
+    start, the finite-N floors (:meth:`floors`) to the ``theory`` record, drawn from the
+    stream ``[seed, 2]``, apart from the run's own.
+
     Args:
-        grid: The grid.
-        target: The target (its continuous density is sampled for the floors).
+        grid: The grid (run-time argument).
+        target: The target (run-time argument; its continuous density is sampled for
+            the floors).
+        steps: The run's last step (run-time argument; always evaluated).
         bandwidth, mirror, method: The KDE's settings (``kde.*``).
         every: Steps between evaluations of ``swarm_l2`` and the decomposition.
         w2_every: Steps between evaluations of ``swarm_w2`` (the transport is costlier).
-        total_steps: The run's last step (always evaluated).
+        floor_draws: Monte-Carlo draws of the finite-N floors (``>= 2``).
+        seed: The run's seed.
     """
 
     def __init__(
         self,
         grid: Grid,
         target: Target,
+        steps: int,
         bandwidth: float,
         mirror: bool,
         method: str,
         every: int,
         w2_every: int,
-        total_steps: int,
+        floor_draws: int = 30,
+        seed: int = 0,
     ) -> None:
         self.grid, self.target = grid, target
-        self.every, self.w2_every, self.total_steps = every, w2_every, total_steps
+        self.every = integer("every", every, 1)
+        self.w2_every = integer("w2_every", w2_every, 1)
+        self.total_steps = steps
+        self.floor_draws = integer("floor_draws", floor_draws, 2)
+        self.seed = integer("seed", seed, 0)
+        self.run: RunContext | None = None
         self.kde = KDE(grid, bandwidth, mirror=mirror, method=method)
         self.smoother = Smoother(grid, bandwidth, mirror)
         self.smoothed_target = smoothed_target(target, bandwidth, mirror).p
@@ -183,6 +179,20 @@ class SwarmTruth:
         if rec.step % self.w2_every == 0 or last:
             out["swarm_w2"] = swarm_w2(rec.positions, self.measure(rec.positions.shape[1]))
         return out
+
+    def initialize(self, run: RunContext) -> None:
+        """Keep the run's context: the floors go into its theory record at the start."""
+        self.run = run
+
+    def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
+        """The step's swarm metrics; at the start, the floors for its robots."""
+        if rec.step == 0 and rec.positions is not None and self.run is not None:
+            rng = np.random.default_rng([self.seed, 2])
+            self.run.theory.update(self.floors(rec.positions.shape[1], rng, self.floor_draws))
+        values.update(self(rec))
+
+    def finalize(self, status: Status) -> None:
+        """Nothing to close."""
 
     def measure(self, n_robots: int) -> TargetMeasure:
         """``p_*`` as a discrete measure for ``n_robots``: exact cell masses on the grid

@@ -13,10 +13,11 @@ lets the estimator measure.
   bandwidth configured.
 
 Both implement :class:`harness.components.Plant` and share the run's
-:class:`~harness.fokker_planck.FokkerPlanck` model. (Until issue 11 the agents plant
-carried the Fokker-Planck density under the *applied* velocity instead of ``p_inf``;
-that reference drifted away from the swarm, because the applied velocity is computed
-from the swarm's own fluctuations, and measured nothing an estimator does.)
+:class:`~harness.fokker_planck.FokkerPlanck` model. Both need a law with a velocity
+field: the mean-field plant moves by it, and the agents plant's limit ``p_inf`` is the
+law's field of ``p_inf``'s own noise-free KDE (the Fokker-Planck density under the
+*applied* velocity would be no reference: that velocity is computed from the swarm's own
+fluctuations, so such a density drifts away from the swarm).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from harness.agents import Swarm
 from harness.components import (
     Control,
     Density,
+    Incompatible,
     MemoryEstimate,
     default_memory,
     flag,
@@ -38,9 +40,8 @@ from harness.components import (
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE, noise_constants
-from harness.records import Measurement
+from harness.records import Command, ControlInput, Estimate, Measurement
 from harness.smoothing import Smoother
-from harness.velocity import VelocityField
 
 
 class Agents:
@@ -77,8 +78,9 @@ class Agents:
         self.smoother = Smoother(grid, h, mirror)
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
+        self.t = 0.0
 
-    has_robots = True  # robots follow per-robot velocities too (VelocityField.robots)
+    has_robots = True
 
     BYTES_PER_ROBOT = 200
     """Per robot: positions, noise and interpolation temporaries (float64, 2 x 8 bytes
@@ -96,20 +98,38 @@ class Agents:
         """Robot positions ``(2, N)`` (length), None before :meth:`start`."""
         return None if self.swarm is None else self.swarm.positions
 
+    def check(self, control: Control, **parts: object) -> None:
+        """The limit ``p_inf`` moves by the law's field: refuse a law without one."""
+        if not control.gives_field:
+            raise Incompatible(
+                "control", type(control).__name__,
+                "a law with a velocity field on plant=agents (its N -> infinity limit "
+                "moves by the field)",
+            )  # fmt: skip
+
     def start(self, rng: np.random.Generator) -> None:
         """Draw ``N`` robots from ``p_0``."""
         self.swarm = Swarm(self.grid, self.init.sample(self.n, self.grid, rng), self.model.sigma)
+        self.t = 0.0
 
     def advance(
-        self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
+        self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
     ) -> None:
-        """Robots by Euler-Maruyama with reflection under ``v``; the limit ``p_inf``
-        under the law of its own noise-free KDE (held over the step, like ``v``).
+        """Robots by Euler-Maruyama with reflection under the command (their own
+        velocities when it has them, else the field's interpolant); the limit ``p_inf``
+        under the law's field of its own noise-free KDE (held over the step, like the
+        command).
         """
         assert self.swarm is not None, "call start first"
-        self.swarm.step(v, dt, rng)
-        v_inf = self.control(*self.smoother(self.density))
-        self.density = self.model.step(self.density, v_inf, dt)
+        if command.robots is not None:
+            self.swarm.step_robots(command.robots, dt, rng)
+        else:
+            assert command.field is not None
+            self.swarm.step(command.field, dt, rng)
+        limit = self.control(ControlInput(self.t, Estimate(*self.smoother(self.density))))
+        assert limit.field is not None
+        self.density = self.model.step(self.density, limit.field, dt)
+        self.t += dt
 
     def measure(self, rng: np.random.Generator) -> Measurement:
         """The KDE of the robots and its analytic gradient."""
@@ -146,14 +166,23 @@ class MeanField:
         self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
         self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
 
+    def check(self, control: Control, **parts: object) -> None:
+        """The density moves by the law's field: refuse a law without one."""
+        if not control.gives_field:
+            raise Incompatible(
+                "control", type(control).__name__,
+                "a law with a velocity field on plant=meanfield (the density moves by it)",
+            )  # fmt: skip
+
     def start(self, rng: np.random.Generator) -> None:
         """Nothing to draw: the state is ``p_0`` on the grid."""
 
     def advance(
-        self, v: VelocityField, a: sp.csr_matrix, dt: float, rng: np.random.Generator
+        self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
     ) -> None:
-        """The backward-Euler Fokker-Planck step under ``v``."""
-        self.density = self.model.step(self.density, v, dt, a)
+        """The backward-Euler Fokker-Planck step under the command's field."""
+        assert command.field is not None
+        self.density = self.model.step(self.density, command.field, dt, a)
 
     def measure(self, rng: np.random.Generator) -> Measurement:
         """``p + sqrt(k p) xi`` and ``G p + sqrt(k_g p) xi_g``, ``xi`` standard normal."""

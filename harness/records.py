@@ -6,7 +6,9 @@ Kept apart from the loop so that observers (metrics, the MCAP logger) and compon
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 import scipy.sparse as sp
@@ -37,7 +39,7 @@ class StepInput:
         p_kde: Measured density ``(ny, nx)`` (1 / length^2), None for estimators that
             take no measurement.
         grad_kde: Measured gradient ``(2, ny, nx)`` (1 / length^3), or None.
-        v_applied: Velocity applied over the last interval (None at ``t = 0``).
+        v_applied: Velocity field applied over the last interval (None at ``t = 0``).
         a: ``A(v_applied)``, the Fokker-Planck matrix (None at ``t = 0``).
         p_true: The plant's mean-field density ``(ny, nx)``; only ``exact`` and
             ``injected`` read it.
@@ -55,32 +57,22 @@ class StepInput:
 
 @dataclass(frozen=True)
 class RobotEstimates:
-    """The robots' own estimates in a decentralised loop (``estimator=distributed``).
+    """Each robot's own estimate, when every robot estimates the density on its own.
 
     Attributes:
         p_hat: Robot ``i``'s density estimate in row ``i``, ``(N, M)`` (1 / length^2),
             cells in C order of the grid.
         q_hat: Gradient estimates ``(N, 2M)`` (``x`` block then ``y`` block, 1 /
             length^3), or None when each robot takes the grid gradient of its own
-            ``p_hat_i`` (the law evaluates that at the robot's cells).
-        p_central: The centralised filter's density estimate ``(ny, nx)`` on the same
-            measurements, run alongside as the reference; never used for control.
-        robot: The index of the robot whose estimate is logged as a field.
-        network: The step's graph and communication figures (see
-            :func:`harness.metrics.network_metrics`): ``consensus_l2``,
-            ``central_gap_l2``, ``messages``, ``mean_degree``, ``components``,
-            ``algebraic_connectivity``.
+            ``p_hat_i`` (a law evaluates that at the robot's cells).
 
-    ``p_hat`` and ``q_hat`` are the filters' own state arrays (a copy would cost ``N M``
-    values per step), like ``StepRecord.positions``: valid until the next step, which
-    overwrites them in place. Observers that keep them must copy.
+    The arrays may be an estimator's own state (a copy would cost ``N M`` values per
+    step), like ``StepRecord.positions``: valid until the next step, which may
+    overwrite them in place. Observers that keep them must copy.
     """
 
     p_hat: np.ndarray
     q_hat: np.ndarray | None
-    p_central: np.ndarray
-    robot: int
-    network: dict[str, float]
 
 
 @dataclass(frozen=True)
@@ -94,9 +86,14 @@ class Estimate:
         trace_Q: L2 trace of its process noise per step (1 / length^2), or None.
         trace_P_grad: Same for the gradient filter (1 / length^4), or None.
         trace_Q_grad: Same for the gradient filter (1 / length^4), or None.
-        robots: Each robot's own estimates when every robot moves on its own
-            (``estimator=distributed``; ``p_hat`` and ``q_hat`` are then the robots'
-            means), else None.
+        robots: Each robot's own estimate, when the robots estimate on their own
+            (``p_hat`` and ``q_hat`` are then the robots' means), else None. A law that
+            accepts it moves each robot by the law of its own estimate.
+        fields: Further density fields ``(ny, nx)`` (1 / length^2) the estimator
+            publishes, by name: logged as ``/fields/<name>`` at the field rate, in this
+            order (see :mod:`harness.mcap_log`).
+        metrics: Further per-step numbers the estimator publishes, by name; the log
+            writes the ones its contract lists (:data:`harness.mcap_log.METRIC_KEYS`).
     """
 
     p_hat: np.ndarray
@@ -106,6 +103,47 @@ class Estimate:
     trace_P_grad: float | None = None
     trace_Q_grad: float | None = None
     robots: RobotEstimates | None = None
+    fields: Mapping[str, np.ndarray] = dc_field(default_factory=dict)
+    metrics: Mapping[str, float] = dc_field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ControlInput:
+    """What a control law may use at time ``t`` (s).
+
+    Attributes:
+        t: Time (s).
+        estimate: The estimates (and, when the robots estimate on their own, each
+            robot's own, ``estimate.robots``).
+        positions: Robot positions ``(2, N)`` (length), None without robots (the
+            mean-field plant, and the agents plant's ``N -> infinity`` limit).
+    """
+
+    t: float
+    estimate: Estimate
+    positions: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Command:
+    """A control law's output: a velocity field on the grid, one velocity per robot,
+    or both.
+
+    Attributes:
+        field: The velocity field (length / s), or None for a law that only moves
+            robots. The mean-field plant, the agents plant's ``N -> infinity`` limit and
+            the filters' transport model ``A(v)`` use it.
+        robots: Velocities ``(2, N)`` (length / s) the robots move with, or None: the
+            robots then move by the field's bilinear interpolant at their positions.
+    """
+
+    field: VelocityField | None
+    robots: np.ndarray | None = None
+
+    def is_finite(self) -> bool:
+        """True when every value of the field and of the robots' velocities is finite."""
+        ok = self.field is None or self.field.is_finite()
+        return ok and (self.robots is None or bool(np.isfinite(self.robots).all()))
 
 
 @dataclass(frozen=True)
@@ -113,7 +151,8 @@ class StepRecord:
     """Everything the observers may see after a step (or at ``t = 0``).
 
     ``positions`` is None without robots; ``measurement`` is None when the estimator
-    takes none (``exact``, ``injected``).
+    takes none (``exact``, ``injected``); ``command`` is the control law's output at
+    ``t``, held over the next step.
     """
 
     step: int
@@ -121,5 +160,5 @@ class StepRecord:
     p_true: np.ndarray
     measurement: Measurement | None
     estimate: Estimate
-    velocity: VelocityField
+    command: Command
     positions: np.ndarray | None

@@ -1,9 +1,11 @@
 """Run a closed loop built from a config to a finished ``run.mcap``.
 
-:func:`harness.build.build` builds the components; the loop (:mod:`harness.loop`)
-advances the plant, the estimator and the control; the observers (metrics, the
-divergence guard and the MCAP logger) see each step and never steer. Whatever happens,
-the log is finalised with a ``status`` record: ``completed``; ``diverged`` (non-finite
+A straight line: :func:`harness.build.build` builds everything from the config; the
+observers are initialised (:mod:`harness.observers`); the loop (:mod:`harness.loop`)
+advances the plant, the estimator and the control, and every observer sees each step
+(metrics, the divergence guard, the MCAP logger, the live view, the progress bar) and
+never steers; the observers are finalised. Whatever happens, the log is finalised with
+a ``status`` record: ``completed``; ``diverged`` (non-finite
 values, negative density, lost mass or a numerical exception such as a singular
 factorisation, with the reason); or ``aborted`` (an exception, Ctrl-C, SIGTERM or
 SIGHUP, re-raised after the log is closed; a full disk, raised as :class:`DiskFull`).
@@ -11,16 +13,8 @@ SIGHUP, re-raised after the log is closed; a full disk, raised as :class:`DiskFu
 
 from __future__ import annotations
 
-import datetime as dt_
 import errno
-import hashlib
-import importlib.metadata
-import json
-import math
-import platform
 import signal
-import subprocess
-import sys
 import time
 import warnings
 from dataclasses import dataclass
@@ -29,32 +23,18 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse.linalg as spla
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from threadpoolctl import threadpool_limits
-from tqdm.auto import tqdm
 
 from harness.build import Experiment, build
-from harness.checks import PRESENTATION_KEYS, ConfigError, check_disk
+from harness.checks import ConfigError, check_disk
+from harness.components import ParameterError
 from harness.fokker_planck import NumericalError
-from harness.live import LiveServer, LiveServerError
+from harness.identity import config_hash, provenance
 from harness.loop import ClosedLoop
-from harness.mcap_log import McapLogger
-from harness.metrics import ALWAYS_NUMBERS, SwarmTruth, metrics
-from harness.records import StepRecord
-from harness.theory import poincare_constant
+from harness.observers import Observer, RunContext, Status
 
-PACKAGES = (
-    "numpy",
-    "scipy",
-    "numba",
-    "filterpy",
-    "mcap",
-    "mcap-protobuf-support",
-    "foxglove-schemas-protobuf",
-    "hydra-core",
-    "omegaconf",
-    "densityloop",
-)
+__all__ = ["DiskFull", "RunResult", "Terminated", "config_hash", "provenance", "run"]
 
 
 class Terminated(Exception):
@@ -74,52 +54,6 @@ class RunResult:
     log_path: Path
     last_metrics: dict[str, Any]
     log_s: float = 0.0
-
-
-def config_hash(cfg: DictConfig) -> str:
-    """SHA-256 (hex) of the resolved config without ``hydra`` and the presentation keys
-    (:data:`harness.checks.PRESENTATION_KEYS`): equal exactly when two runs compute and
-    log the same thing. Canonical JSON (sorted keys), so formatting never matters.
-    """
-    data = OmegaConf.to_container(cfg, resolve=True)
-    assert isinstance(data, dict)
-    data.pop("hydra", None)
-    for key in PRESENTATION_KEYS:
-        block, _, leaf = key.partition(".")
-        if isinstance(data.get(block), dict):
-            data[block].pop(leaf, None)
-    text = json.dumps(data, sort_keys=True, default=repr, separators=(",", ":"))
-    return hashlib.sha256(text.encode()).hexdigest()
-
-
-def provenance(seed: int) -> dict[str, str]:
-    """Git commit and dirty flag, package versions, Python, seed, host, start time."""
-    root = Path(__file__).resolve().parents[1]
-
-    def git(*args: str) -> str:
-        try:
-            out = subprocess.run(
-                ["git", *args], cwd=root, capture_output=True, text=True, timeout=10
-            )
-            return out.stdout.strip() if out.returncode == 0 else "unknown"
-        except (OSError, subprocess.SubprocessError):
-            return "unknown"
-
-    status = git("status", "--porcelain")
-    info = {
-        "git_commit": git("rev-parse", "HEAD"),
-        "git_dirty": "unknown" if status == "unknown" else str(bool(status)).lower(),
-        "python": sys.version.split()[0],
-        "seed": str(seed),
-        "host": platform.node(),
-        "start_time_utc": dt_.datetime.now(dt_.UTC).isoformat(timespec="seconds"),
-    }
-    for name in PACKAGES:
-        try:
-            info[f"version_{name}"] = importlib.metadata.version(name)
-        except importlib.metadata.PackageNotFoundError:
-            info[f"version_{name}"] = "not installed"
-    return info
 
 
 NUMERICAL = (
@@ -153,19 +87,6 @@ def is_numerical(err: BaseException) -> bool:
     if isinstance(err, NUMERICAL):
         return True
     return isinstance(err, RuntimeError) and "singular" in str(err).lower()
-
-
-def check_finite(values: dict[str, Any]) -> None:
-    """Raise :class:`NumericalError` when a metric is NaN or infinite (None is allowed
-    only for keys that may be null).
-    """
-    for key, value in values.items():
-        if value is None:
-            if key in ALWAYS_NUMBERS:
-                raise NumericalError(f"metric {key} is missing")
-            continue
-        if not math.isfinite(float(value)):
-            raise NumericalError(f"metric {key} became non-finite ({value})")
 
 
 class StopRequest:
@@ -209,93 +130,107 @@ def _disk_full(err: BaseException) -> bool:
     return isinstance(err, OSError) and err.errno in DISK_FULL
 
 
-def run(cfg: DictConfig, out_dir: Path, overwrite: bool = False) -> RunResult:
-    """Run the closed loop of ``cfg`` and write ``out_dir / 'run.mcap'``.
+def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) -> RunResult:
+    """Run the closed loop of ``cfg`` (a config, or its :func:`~harness.build.build`)
+    and write ``out_dir / 'run.mcap'``.
 
     Args:
-        cfg: The config.
+        cfg: The config, or the experiment built from it (built once: a caller that
+            built to check hands its build on).
         out_dir: The run directory.
         overwrite: Replace an existing ``run.mcap`` (a sweep's resume decides this);
             by default an existing log is refused.
 
     Raises:
         ConfigError: before anything is written, for a value that is not allowed, an
-            existing log in ``out_dir``, or a log larger than the free disk space.
+            existing log in ``out_dir``, a log larger than the free disk space, or an
+            observer that cannot start (a live port in use).
         DiskFull: when the disk fills during the run (the log holds every chunk
             written before; status ``aborted`` when it could still be finalised).
         KeyboardInterrupt, Terminated, Exception: re-raised after the log is
             finalised with status ``aborted``.
     """
-    parts = build(cfg)
-    log_path = Path(out_dir) / "run.mcap"
+    exp = cfg if isinstance(cfg, Experiment) else build(cfg)
+    out_dir = Path(out_dir)
+    log_path = out_dir / "run.mcap"
     if not overwrite and (log_path.exists() or log_path.is_symlink()):
         raise ConfigError(
             "hydra.run.dir",
             str(out_dir),
             "a directory without a run.mcap (it holds one already: not overwritten)",
         )
-    check_disk(cfg, parts.grid, int(getattr(parts.plant, "n", 0) or 0), Path(out_dir))
+    check_disk(exp.disk, out_dir)
     stop = StopRequest()
     stop.install()  # before the log exists: a signal from here on finalises it
-    live = None
     try:
-        live = start_live(cfg)
         out_dir.mkdir(parents=True, exist_ok=True)
-        return _run(cfg, parts, out_dir, stop, live)
+        return _run(exp, out_dir, stop)
     finally:
         stop.interruptible = False
-        if live is not None:
-            live.close()
         stop.restore()
 
 
-def _run(cfg: DictConfig, parts: Any, out_dir: Path, stop: StopRequest, live: Any) -> RunResult:
-    """The loop of :func:`run`, with the log always finalised."""
-    rng = np.random.default_rng(cfg.seed)
-    steps = round(cfg.sim.t_final / cfg.sim.dt)
-    target = parts.target
-    swarm = SwarmTruth(
-        parts.grid,
-        target,
-        cfg.kde.bandwidth,
-        cfg.kde.mirror,
-        cfg.kde.method,
-        cfg.log.positions_every,
-        cfg.log.w2_every,
-        steps,
-    )
-    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, cfg.sim.dt, rng)
-    logger = McapLogger(
-        out_dir / "run.mcap",
-        parts.grid,
-        OmegaConf.to_yaml(cfg, resolve=True),
-        {**provenance(cfg.seed), "config_sha256": config_hash(cfg)},
-        cfg.log.field_every,
-        cfg.log.positions_every,
-        steps,
-        live=live,
-    )
-    progress = {"auto": None, "on": True, "off": False}.get(cfg.log.progress, None)
-    bar = tqdm(
-        total=steps,
-        unit="step",
-        disable=(not sys.stderr.isatty()) if progress is None else not progress,
-    )
-    state, reason, done, last = "aborted", "", 0, {}
+def _initialize(exp: Experiment, context: RunContext) -> list[Observer]:
+    """Initialise the observers in order; the ones started, for :func:`_finalize`.
+
+    Raises:
+        ConfigError: for an observer that refuses to start (a live port in use), after
+            finalising the ones already started.
+    """
+    started: list[Observer] = []
+    for name, observer in exp.observers.items():
+        try:
+            observer.initialize(context)
+        except ParameterError as err:
+            _finalize(started, Status("aborted", f"observer {name} could not start", 0.0))
+            key = exp.keys.get(f"observers.{name}.{err.name}", f"observers.{name}.{err.name}")
+            raise ConfigError(key, err.value, err.allowed) from None
+        except BaseException:
+            _finalize(started, Status("aborted", f"observer {name} could not start", 0.0))
+            raise
+        started.append(observer)
+    return started
+
+
+def _finalize(observers: list[Observer], status: Status) -> None:
+    """Finalise the observers in reverse order, each whatever the others do; the first
+    error is raised after all ran.
+    """
+    first: BaseException | None = None
+    for observer in reversed(observers):
+        try:
+            observer.finalize(status)
+        except BaseException as err:  # re-raised below, after the others
+            first = first or err
+    if first is not None:
+        raise first
+
+
+def _run(exp: Experiment, out_dir: Path, stop: StopRequest) -> RunResult:
+    """The loop of :func:`run`: observers initialised, the loop stepped, the observers
+    finalised whatever happens (so the log always is).
+    """
+    rng = np.random.default_rng(exp.seed)
+    steps = exp.steps
+    loop = ClosedLoop(exp.plant, exp.estimator, exp.control, exp.model, exp.dt, rng)
+    context = RunContext(out_dir)
+    state, reason, done = "aborted", "", 0
+    last: dict[str, float | None] = {}
     disk_error: OSError | None = None
     t0 = time.perf_counter()
+    started: list[Observer] = []
+    watching = list(exp.observers.values())
     try:
+        started = _initialize(exp, context)
         with threadpool_limits(1), warnings.catch_warnings():
             warnings.simplefilter("error", spla.MatrixRankWarning)
             warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
-            logger.write_target(target.p)
             stop.interruptible = True
             rec = loop.start()
             stop.interruptible = False
-            logger.add_metadata("theory", theory(cfg, parts, swarm, rec))
-            last = metrics(loop.grid, target, rec) | swarm(rec)
-            check_finite(last)
-            logger.handle(rec, last)
+            last = {}
+            for observer in watching:
+                observer.handle(rec, last)
             for _ in range(steps):
                 if stop.signals:
                     raise Terminated(stop.reason)
@@ -303,15 +238,12 @@ def _run(cfg: DictConfig, parts: Any, out_dir: Path, stop: StopRequest, live: An
                 rec = loop.step()
                 stop.interruptible = False
                 done = rec.step
-                last = metrics(loop.grid, target, rec) | swarm(rec)
-                check_finite(last)
-                logger.handle(rec, last)
-                if done % 50 == 0 or done == steps:
-                    bar.set_postfix_str(
-                        f"t={rec.t:.2f} s |p_hat-p*|={last['phat_target_l2']:.3e}", refresh=False
-                    )
-                    bar.update(done - bar.n)
+                last = {}
+                for observer in watching:
+                    observer.handle(rec, last)
         state = "completed"
+    except ConfigError:
+        raise  # an observer refused to start: nothing was logged
     except (KeyboardInterrupt, Terminated) as err:
         stop.interruptible = False
         reason = f"interrupted at step {done}: {type(err).__name__} {err}".strip()
@@ -328,56 +260,23 @@ def _run(cfg: DictConfig, parts: Any, out_dir: Path, stop: StopRequest, live: An
             raise
     finally:
         stop.interruptible = False
-        bar.close()
         try:
-            logger.finalize(state, reason, time.perf_counter() - t0)
+            _finalize(started, Status(state, reason, time.perf_counter() - t0))
         except OSError as err:
             if not _disk_full(err):
                 raise
             disk_error = disk_error or err
+    logger = exp.observers.get("log")
+    log_s = float(getattr(logger, "seconds", 0.0))
     if disk_error is not None:
         raise DiskFull(
-            f"disk full while writing {logger.path} at step {done} (t = {done * cfg.sim.dt:g} s): "
-            f"{disk_error.strerror}; the log keeps what was written before "
-            "(analysis.load.load_run recovers it)"
+            f"disk full while writing {out_dir / 'run.mcap'} at step {done} "
+            f"(t = {done * exp.dt:g} s): {disk_error.strerror}; the log keeps what was "
+            "written before (analysis.load.load_run recovers it)"
         )
     return RunResult(
-        state, reason, done, time.perf_counter() - t0, logger.path, last, logger.seconds
+        state, reason, done, time.perf_counter() - t0, out_dir / "run.mcap", last, log_s
     )
-
-
-def theory(cfg: DictConfig, parts: Experiment, swarm: SwarmTruth, start: StepRecord) -> dict:
-    """The ``theory`` record: the ``p_*``-weighted Poincare constant ``lambda`` (1 /
-    length^2); for laws with a gain ``alpha``, the exact-estimate decay rate ``(alpha +
-    sigma) lambda`` (1 / s); with robots, the finite-N floors of the swarm metrics
-    (:meth:`harness.metrics.SwarmTruth.floors`, drawn from the stream ``[seed, 2]``,
-    apart from the run's own).
-    """
-    lam = poincare_constant(parts.grid, parts.target.p)
-    out = {"poincare_lambda": repr(lam)}
-    alpha = getattr(parts.control, "alpha", None)
-    if isinstance(alpha, float):
-        out["rate_exact"] = repr((alpha + cfg.dynamics.sigma) * lam)
-    if start.positions is not None:
-        rng = np.random.default_rng([cfg.seed, 2])
-        out |= swarm.floors(start.positions.shape[1], rng, cfg.log.floor_draws)
-    return out
-
-
-def start_live(cfg: DictConfig) -> LiveServer | None:
-    """The live server of ``log.live`` (None when off).
-
-    Raises:
-        ConfigError: naming ``log.live_port`` when the server cannot start there.
-    """
-    if not cfg.log.live:
-        return None
-    try:
-        server = LiveServer(cfg.log.live_host, cfg.log.live_port)
-    except LiveServerError as err:
-        raise ConfigError("log.live_port", cfg.log.live_port, str(err)) from None
-    print(f"live view: {server.url} (Foxglove: Open connection)", file=sys.stderr)
-    return server
 
 
 def threading_is_main() -> bool:

@@ -26,19 +26,11 @@ from harness.grid import Grid
 
 @dataclass(frozen=True)
 class VelocityField:
-    """A velocity field on a :class:`~harness.grid.Grid` (length / time).
-
-    ``robots`` (``(2, N)``, length / time), when given, are the velocities the robots
-    move with instead of the field's interpolant at their positions: decentralised
-    control, where each robot evaluates the law on its own estimate
-    (``estimator=distributed``). The field is then the law on the robots' mean estimate,
-    the filters' transport model and what the log shows.
-    """
+    """A velocity field on a :class:`~harness.grid.Grid` (length / time)."""
 
     centres: np.ndarray
     face_x: np.ndarray
     face_y: np.ndarray
-    robots: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         _, ny, nx = self.centres.shape
@@ -67,7 +59,6 @@ class VelocityField:
             np.isfinite(self.centres).all()
             and np.isfinite(self.face_x).all()
             and np.isfinite(self.face_y).all()
-            and (self.robots is None or bool(np.isfinite(self.robots).all()))
         )
 
 
