@@ -10,7 +10,7 @@ from mcap.reader import make_reader
 from analysis.load import load_run
 from harness.densities import DEFAULT_TARGET
 from harness.grid import Grid
-from harness.metrics import METRIC_KEYS
+from harness.mcap_log import METRIC_KEYS
 from harness.run import run
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -12,9 +12,9 @@ def test_debiased_law_vanishes_at_the_smoothed_target(compose):
     # p_hat = K_h p_*, q_hat = G K_h p_*: the feedback term is zero, only the drift is left
     parts = build(compose(["kde.debias=true", "grid.n=20"]))
     ft = parts.control.feedback_target
-    v = parts.control(ft.p, ft.grad)
+    v = parts.control.field(ft.p, ft.grad)
     undebiased = build(compose(["grid.n=20"])).control
-    drift = undebiased(parts.target.p, parts.target.grad)
+    drift = undebiased.field(parts.target.p, parts.target.grad)
     np.testing.assert_allclose(v.centres, drift.centres, atol=1e-15)
     # and the smoothed target is K_h p_*: smaller peaks, same mass
     assert ft.p.max() < parts.target.p.max()

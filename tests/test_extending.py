@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from analysis.load import load_run
@@ -22,12 +23,16 @@ def example_files() -> dict[str, str]:
 def test_the_page_has_one_module_and_one_yaml_per_component():
     names = sorted(example_files())
     assert names == [
+        "my_components/capped.py",
+        "my_components/csv_metrics.py",
         "my_components/dropout.py",
         "my_components/ewma.py",
         "my_components/ring.py",
         "my_components/saturated.py",
+        "my_conf/control/capped.yaml",
         "my_conf/control/saturated.yaml",
         "my_conf/estimator/ewma.yaml",
+        "my_conf/observers/csv.yaml",
         "my_conf/plant/dropout.yaml",
         "my_conf/target/ring.yaml",
     ]
@@ -35,7 +40,14 @@ def test_the_page_has_one_module_and_one_yaml_per_component():
 
 @pytest.mark.parametrize(
     "override",
-    ["control=saturated", "estimator=ewma", "plant=dropout", "target=ring"],
+    [
+        "control=saturated",
+        "control=capped",
+        "estimator=ewma",
+        "plant=dropout",
+        "target=ring",
+        "observers=[default,csv]",
+    ],
 )
 def test_each_example_runs_out_of_tree(tmp_path, smoke, override):
     for name, text in example_files().items():
@@ -61,7 +73,16 @@ def test_each_example_runs_out_of_tree(tmp_path, smoke, override):
         timeout=300,
     )
     assert proc.returncode == 0, proc.stderr
-    assert load_run(run_dir).state == "completed"
+    log = load_run(run_dir)
+    assert log.state == "completed"
+    if override.startswith("observers"):
+        rows = (run_dir / "metrics.csv").read_text().splitlines()
+        assert rows[0] == "t,phat_target_l2,swarm_l2"
+        steps = len(log.metrics["t"]) - 1
+        assert len(rows) == 1 + steps // 10 + 1  # every 10 steps from t = 0
+        t, err, _ = rows[-1].split(",")
+        i = int(np.argmin(np.abs(log.metrics["t"] - float(t))))
+        assert float(err) == pytest.approx(log.metrics["phat_target_l2"][i], rel=1e-12)
 
 
 def test_an_example_parameter_is_checked_by_its_component(tmp_path):

@@ -89,7 +89,7 @@ def held_loop(grid, estimate, dt, mode, steps=30, eps=1e-6):
     p = 1.0 + eps * mode
     amplitudes = []
     for _ in range(steps):
-        v = control(*estimate(p))
+        v = control.field(*estimate(p))
         p = model.step(p, v, dt)
         amplitudes.append(grid.inner(p - 1.0, mode) / grid.inner(mode, mode))
     return np.array(amplitudes)

@@ -216,7 +216,7 @@ def test_transport_target_measure_stops_at_64_cells_per_side(rng):
     values = []
     for n in (64, 128, 256):
         g = Grid.square(n)
-        truth = SwarmTruth(g, Target.from_density(g, DEFAULT_TARGET), 0.04, True, "auto", 1, 1, 1)
+        truth = SwarmTruth(g, Target.from_density(g, DEFAULT_TARGET), 1, 0.04, True, "auto", 1, 1)
         assert truth.measure(300).weights.size == 64 * 64
         values.append(swarm_w2(positions, truth.measure(300)))
     assert values[0] == values[1] == values[2]
