@@ -6,10 +6,11 @@ follow by interpolation or, when each robot holds its own estimate, evaluate on 
 own (:mod:`harness.robot_law`). They implement :class:`harness.components.Control`; the
 functions :func:`paper_law` and :func:`heat_law` hold the equations. Both laws take the
 density estimate ``p_hat`` (``(ny, nx)``, 1 / length^2), the gradient estimate
-``q_hat`` (``(2, ny, nx)``, 1 / length^3), the target (``p_*``, ``grad p_*`` and ``log p_*`` on the grid, see
-:class:`harness.densities.Target`), the gain ``alpha >= 0`` (length^4 / time, so that
-``alpha grad(p / p_*)`` is a velocity) and the noise intensity ``sigma >= 0``
-(length^2 / time), and return a :class:`~harness.velocity.VelocityField` (length / time).
+``q_hat`` (``(2, ny, nx)``, 1 / length^3), the target (``p_*``, ``grad p_*`` and
+``log p_*`` on the grid, see :class:`harness.densities.Target`), the gain
+``alpha >= 0`` (length^4 / time, so that ``alpha grad(p / p_*)`` is a velocity) and the
+noise intensity ``sigma >= 0`` (length^2 / time), and return a
+:class:`~harness.velocity.VelocityField` (length / time).
 """
 
 from __future__ import annotations
