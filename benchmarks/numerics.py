@@ -5,7 +5,7 @@
 Medians of wall-clock times (ms per call) or rates over a run (steps per second), BLAS
 pinned to one thread (threadpoolctl) as in the run loop; numba uses its default
 thread count (all cores). Run with nothing else on the machine: on a busy machine
-the parallel kernels wait for descheduled threads and every figure is pessimistic.
+the parallel compiled loops wait for descheduled threads and every figure is pessimistic.
 
 Figures (targets from the issue):
 

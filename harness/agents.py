@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harness.compiled.agents import euler_maruyama_step
 from harness.grid import Grid
-from harness.kernels import euler_maruyama_step
 from harness.velocity import VelocityField
 
 DRAW_CHUNK = 1 << 17
@@ -165,7 +165,7 @@ class Swarm:
 
         The Gaussian increments come from ``rng`` (:func:`draw_normals`); the
         scaling by ``sqrt(2 sigma dt)``, interpolation, update and reflection run in
-        one compiled parallel pass (:func:`harness.kernels.euler_maruyama_step`),
+        one compiled parallel pass (:func:`harness.compiled.agents.euler_maruyama_step`),
         which :meth:`step_reference` states in plain numpy.
         """
         g = self.grid

@@ -19,10 +19,10 @@ from typing import ClassVar
 
 import numpy as np
 
+from harness.compiled.control import paper_velocity
 from harness.components import flag, number
 from harness.densities import Target
 from harness.grid import Grid
-from harness.kernels import paper_velocity
 from harness.records import Command, ControlInput
 from harness.robot_law import own_velocities
 from harness.smoothing import smoothed_target, transfer
@@ -52,7 +52,7 @@ def paper_law(
     With exact estimates it equals eq. ``modified density feedback law 1``,
     ``v = -alpha grad(p / p_*) + sigma grad p_* / p_*``, and the closed loop is
     ``d_t p = div((alpha p + sigma p_*) grad(p / p_*))``. ``p_hat`` never appears in
-    a denominator. Compiled (:func:`harness.kernels.paper_velocity`, one pass, the same
+    a denominator. Compiled (:func:`harness.compiled.control.paper_velocity`, one pass, the same
     bits as the numpy statement :func:`paper_law_reference`).
 
     Discretisation. Cell centres take the formula above. On the faces, the
@@ -93,7 +93,7 @@ def paper_law_reference(
     feedback_target: Target | None = None,
 ) -> VelocityField:
     """Numpy statement of :func:`paper_law` (which is compiled,
-    :func:`harness.kernels.paper_velocity`; the same bits).
+    :func:`harness.compiled.control.paper_velocity`; the same bits).
     """
     _check_gains(alpha, sigma)
     g = target.grid

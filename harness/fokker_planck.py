@@ -47,14 +47,14 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from harness.grid import Grid
-from harness.kernels import (
+from harness.compiled.fokker_planck import (
     assemble_operator,
     density_summary,
     jacobi_series,
     neumann_series,
     red_black,
 )
+from harness.grid import Grid
 from harness.velocity import VelocityField
 
 
@@ -231,12 +231,17 @@ class FokkerPlanck:
         """Sparse ``A(v)`` with ``dp/dt = A(v) p`` on flattened fields (eq. ``FP
         equation``); columns sum to zero, off-diagonals are ``>= 0``.
 
-        Filled by the compiled :func:`harness.kernels.assemble_operator` (the face rates,
-        then the rows, in one call), equal bit for bit to :meth:`matrix_reference`.
+        Filled by the compiled :func:`harness.compiled.fokker_planck.assemble_operator`
+        (the face rates, then the rows, in one call), equal bit for bit to
+        :meth:`matrix_reference`.
         """
         g, pat = self.grid, self._pattern
         a = copy.copy(self._template)  # scipy's constructor re-checks the pattern: 40 us
-        a.data = assemble_operator(v.face_x, v.face_y, self.sigma, g.dx, g.dy, pat.indptr)
+        face_x = np.ascontiguousarray(v.face_x, dtype=float)
+        face_y = np.ascontiguousarray(v.face_y, dtype=float)
+        a.data = assemble_operator(
+            face_x, face_y, float(self.sigma), float(g.dx), float(g.dy), pat.indptr
+        )
         return a
 
     def matrix_reference(self, v: VelocityField) -> sp.csr_matrix:
@@ -357,7 +362,7 @@ def jacobi_solve(
     settings (25 to 40 terms). Warm starts buy nothing here: ``I - dt A`` is
     within ``q`` of its diagonal, so the first term already carries all but a
     fraction ``q`` of the answer. The compiled loop is
-    :func:`harness.kernels.jacobi_series`; the reference is the sparse LU.
+    :func:`harness.compiled.fokker_planck.jacobi_series`; the reference is the sparse LU.
     """
     o_max = float(np.max(-a.diagonal(), initial=0.0))
     q = dt * o_max / (1.0 + dt * o_max)
@@ -399,33 +404,35 @@ def red_black_solve(
     ones, updated first). For an M-matrix its iteration matrix is entrywise non-negative
     with spectral radius at most the Jacobi ratio ``q`` (Stein-Rosenberg), and for the
     5-point (consistently ordered) operator about ``q^2``: half the sweeps of the
-    Jacobi series' terms, each one pass over the matrix (:func:`harness.kernels.
-    red_black`). From ``x_0 = 0`` and ``rhs >= 0`` the iterates are non-negative and
-    increase; the residual ``r_K = rhs - (D - N) x_K`` is ``>= 0``, zero on black cells,
-    and ``x_K + r_K`` has the mass of ``rhs`` (``1^T (I - dt A) = 1^T``) and is
-    non-negative, with error ``-dt A (x - x_K)`` as there. Measured at the paper's
-    settings mid-run: 9 sweeps against 17 terms at n = 128, 14 against 26 at n = 256
-    (``python -m benchmarks.numerics``). The reference is the sparse LU.
+    Jacobi series' terms, each one pass over the matrix
+    (:func:`harness.compiled.fokker_planck.red_black`). From ``x_0 = 0`` and ``rhs >= 0``
+    the iterates are non-negative and increase; the residual ``r_K = rhs - (D - N) x_K``
+    is ``>= 0``, zero on black cells, and ``x_K + r_K`` has the mass of ``rhs`` (``1^T
+    (I - dt A) = 1^T``) and is non-negative, with error ``-dt A (x - x_K)`` as there.
+    Measured at the paper's settings mid-run: 9 sweeps against 17 terms at n = 128, 14
+    against 26 at n = 256 (``python -m benchmarks.numerics``). The reference is the
+    sparse LU.
     """
     o_max = float(np.max(-(a.diagonal() if diag is None else diag), initial=0.0))
     q = dt * o_max / (1.0 + dt * o_max)
     bound = int(np.ceil(np.log(tol) / np.log(q))) if q > 0.0 else 1
     if bound > _MAX_JACOBI_TERMS:
         return None
+    rhs = np.ascontiguousarray(rhs, dtype=float)
     x, sweeps, res = red_black(
-        a.indptr, a.indices, a.data, float(dt), np.ascontiguousarray(rhs, dtype=float),
-        int(nx), tol, bound + 2,
+        a.indptr, a.indices, a.data, float(dt), rhs.reshape(rhs.shape[0], -1), int(nx), tol,
+        bound + 2,
     )  # fmt: skip
     if sweeps < 0:
         raise ValueError(f"not a 5-point operator on a grid of {nx} columns ({a.shape[0]} rows)")
-    return x if res <= tol else None
+    return x.reshape(rhs.shape) if res <= tol else None
 
 
 def neumann_series_reference(
     a: sp.csr_matrix, dt: float, rhs: np.ndarray, terms: int
 ) -> np.ndarray:
     """``sum_{k <= terms} (dt A)^k rhs`` by sparse products: the numpy statement of
-    :func:`harness.kernels.neumann_series` (same bits).
+    :func:`harness.compiled.fokker_planck.neumann_series` (same bits).
     """
     term, total = rhs, rhs.copy()
     a_dt = a * dt
@@ -445,7 +452,7 @@ def implicit_solve(
     benchmarks' mid-run state, and at n = 30 two to three times faster than the series
     below, measured).
     Without it: the truncated Neumann series ``sum_k (dt A)^k rhs`` (compiled,
-    :func:`harness.kernels.neumann_series`) when ``rho = dt ||A||_1`` allows at most
+    :func:`harness.compiled.fokker_planck.neumann_series`) when ``rho = dt ||A||_1`` allows at most
     ``_MAX_SERIES_TERMS`` terms for a remainder below ``1e-15 ||rhs||_1`` (see
     :meth:`FokkerPlanck.step`), else the Jacobi-split series (:func:`jacobi_solve`)
     column by column. Sparse LU when the sweeps or terms would exceed
@@ -482,7 +489,7 @@ def check_density(grid: Grid, before: np.ndarray, after: np.ndarray, tolerance: 
     """Raise :class:`NumericalError` unless ``after`` is finite, non-negative (to
     round-off: ``min after >= -1e-12 max |before|``) and has the mass of ``before`` to
     relative ``tolerance`` (masses as grid integrals, the sums in one compiled pass,
-    :func:`harness.kernels.density_summary`).
+    :func:`harness.compiled.fokker_planck.density_summary`).
     """
     finite, s0, s1, low, top = density_summary(before.reshape(-1), after.reshape(-1))
     if not finite:

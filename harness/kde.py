@@ -48,8 +48,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harness.compiled.binning import linear_binning
 from harness.grid import Grid
-from harness.kernels import linear_binning
 
 _SQRT_2PI = np.sqrt(2.0 * np.pi)
 

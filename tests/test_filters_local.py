@@ -86,7 +86,7 @@ def test_weighted_poisson_solves_the_normal_equations(rng):
 def test_weighted_laplacian_is_the_sparse_product(shape, rng):
     """The matrix-free ``G^T diag(c) G x`` equals the product with the sparse gradient
     matrix, on grids wider than tall, taller than wide and of the smallest width (4)."""
-    from harness.kernels import weighted_laplacian
+    from harness.compiled.filters import weighted_laplacian
 
     nx, ny = shape
     g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.7)
@@ -105,7 +105,7 @@ def test_band_cholesky_solve_matches_lapack(rng):
     banded Cholesky factor is of (``cho_solve_banded`` and a dense solve agree)."""
     import scipy.linalg as sla
 
-    from harness.kernels import band_cholesky_solve
+    from harness.compiled.filters import band_cholesky_solve
 
     m, w = 40, 6
     dense = np.zeros((m, m))
@@ -128,7 +128,7 @@ def test_compiled_band_operator_is_the_sparse_product(shape, rng):
     the longer side, cell 0 pinned), and its factor solves the pinned dense system."""
     import scipy.linalg as sla
 
-    from harness.kernels import pinned_band_operator
+    from harness.compiled.filters import pinned_band_operator
 
     nx, ny = shape
     g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.8)
@@ -146,7 +146,7 @@ def test_compiled_band_operator_is_the_sparse_product(shape, rng):
     dense = dense[np.ix_(order, order)]
     factor = np.ascontiguousarray(sla.cholesky_banded(ab, lower=True).T)
     b = rng.normal(size=g.size)
-    from harness.kernels import band_cholesky_solve
+    from harness.compiled.filters import band_cholesky_solve
 
     x = band_cholesky_solve(factor, b)
     np.testing.assert_allclose(dense @ x, b, rtol=0, atol=1e-10 * np.abs(b).max())
@@ -350,11 +350,11 @@ def test_band_poisson_is_the_galerkin_solve_of_the_dense_operator(shape, rng):
 
 
 def test_band_gram_does_not_depend_on_thread_count(rng):
-    """The parallel Gram kernel with 1 and 2 threads and its serial build write the
+    """The parallel Gram build with 1 and 2 threads and its serial build write the
     same bits in the upper triangle (each entry is computed on its own)."""
     import numba
 
-    from harness import kernels
+    from harness.compiled.filters import band_gram
     from harness.filters.common import BandLimit
     from harness.filters.local import BandPoisson
 
@@ -371,12 +371,12 @@ def test_band_gram_does_not_depend_on_thread_count(rng):
         for threads in (1, 2):
             numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
             out = np.zeros((k, k))
-            kernels.band_gram(*args, out)
+            band_gram(*args, out)
             results.append(out[upper])
     finally:
         numba.set_num_threads(before)
     serial = np.zeros((k, k))
-    kernels.band_gram_serial(*args, serial)
+    band_gram.serial(*args, serial)
     assert np.array_equal(results[0], results[1])
     assert np.array_equal(results[0], serial[upper])
     np.testing.assert_allclose(
@@ -471,11 +471,12 @@ def test_band_transition_variance_does_not_depend_on_thread_count(rng):
     threads and the serial build give the same bits."""
     import numba
 
-    from harness import kernels
+    from harness import compiled
+    from harness.compiled.filters import band_transition_variance, band_transition_variance_rows
     from harness.filters.common import BandLimit
 
     g = Grid.square(256)
-    assert g.size >= kernels.PARALLEL_MIN_CELLS
+    assert g.size >= compiled.PARALLEL_MIN_CELLS
     rho = BandLimit(g, 2.5 / 0.04).correlations()
     ny, nx = g.shape
     v = VelocityField.from_centres(rng.normal(scale=0.01, size=(2, ny, nx)))
@@ -489,13 +490,15 @@ def test_band_transition_variance_does_not_depend_on_thread_count(rng):
         outs = []
         for threads in (1, 2):
             numba.set_num_threads(threads)
-            outs.append(kernels.band_transition_variance(*args))
+            outs.append(band_transition_variance(*args))
     finally:
         numba.set_num_threads(before)
     assert np.array_equal(outs[0], outs[1])
     dp = np.vstack([d, np.zeros((1, 3))])
     serial = np.empty_like(d)
-    kernels._btv_serial(a.indptr, a.indices, a.data, 0.01, dp, np.sqrt(dp), rho, nx, serial)
+    band_transition_variance_rows.serial(
+        a.indptr, a.indices, a.data, 0.01, dp, np.sqrt(dp), rho, nx, serial
+    )
     assert np.array_equal(outs[0], serial)
 
 

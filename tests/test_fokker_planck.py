@@ -108,8 +108,8 @@ def test_compiled_neumann_series_has_the_bits_of_the_sparse_products(rng):
     bits as the sparse-product statement, for one and several columns and for a matrix
     with duplicate entries; ``implicit_solve`` without the grid's shape takes it and
     agrees with the sparse LU."""
+    from harness.compiled.fokker_planck import neumann_series
     from harness.fokker_planck import neumann_series_reference
-    from harness.kernels import neumann_series
 
     g = Grid(7, 5, 0.0, 1.0, 0.0, 0.8)
     a = FokkerPlanck(g, 1e-3).matrix(random_velocity(g, rng, 0.3))
@@ -306,7 +306,7 @@ def test_matrix_equals_bincount_reference_bit_for_bit(shape, sigma, scale, rng):
 def test_parallel_assembly_does_not_depend_on_thread_count(rng):
     import numba
 
-    from harness import kernels
+    from harness.compiled.fokker_planck import assemble_operator
 
     g = Grid.square(96)
     op = FokkerPlanck(g, 5e-5)
@@ -317,32 +317,32 @@ def test_parallel_assembly_does_not_depend_on_thread_count(rng):
         results = []
         for threads in (1, 2):
             numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-            results.append(kernels._assemble_parallel(*args))
+            results.append(assemble_operator.parallel(*args))
     finally:
         numba.set_num_threads(before)
     reference = op.matrix_reference(v).data
     assert np.array_equal(results[0], reference) and np.array_equal(results[1], reference)
-    assert np.array_equal(kernels._assemble_serial(*args), reference)
+    assert np.array_equal(assemble_operator.serial(*args), reference)
 
 
 def test_serial_and_parallel_builds_have_their_own_cache_entries(tmp_path):
     """numba's disk cache keys an entry by name, line and bytecode, not by the flags:
     two plain ``njit(cache=True)`` builds of one function load each other's code. A
-    build made by :func:`harness.kernels._build` after the other one was cached must
+    build made by :func:`harness.compiled.build` after the other one was cached must
     compile afresh (a cache miss), and load its own entry next time (a hit)."""
     import subprocess
     import sys
 
     (tmp_path / "twobuilds.py").write_text(
         "import numba\n"
-        "from harness.kernels import _build\n\n"
+        "from harness.compiled import build\n\n"
         "def total(x):\n"
         "    s = 0.0\n"
         "    for i in numba.prange(x.size):\n"
         "        s += x[i]\n"
         "    return s\n\n"
-        "serial = _build(total, parallel=False)\n"
-        "parallel = _build(total, parallel=True)\n"
+        "serial = build(total, parallel=False)\n"
+        "parallel = build(total, parallel=True)\n"
     )
     run = (
         "import sys, numpy as np, twobuilds\n"
@@ -439,21 +439,21 @@ def test_jacobi_solve_signed_rhs_and_columns_match_lu(rng):
     np.testing.assert_allclose(x.sum(axis=0), rhs.sum(axis=0), atol=1e-12 * np.abs(rhs).sum())
 
 
-@pytest.mark.parametrize("kernel", ["jacobi", "red_black"])
-def test_implicit_kernels_do_not_depend_on_thread_count(rng, kernel):
+@pytest.mark.parametrize("solver", ["jacobi_series", "red_black"])
+def test_implicit_solvers_do_not_depend_on_thread_count(rng, solver):
     """The parallel build with 1 and 2 threads and the serial build give the same bits
     (the Jacobi series and red-black Gauss-Seidel)."""
     import numba
 
-    from harness import kernels
+    from harness.compiled import fokker_planck
 
-    parallel = getattr(kernels, f"_{kernel}_parallel")
-    serial = getattr(kernels, f"_{kernel}_serial")
+    builds = getattr(fokker_planck, solver)
+    parallel, serial = builds.parallel, builds.serial
     g = Grid.square(128)
     op = FokkerPlanck(g, 5e-5)
     p, v = _mid_run_velocity(g, rng)
     a = op.matrix(v)
-    if kernel == "red_black":  # two columns, swept together
+    if solver == "red_black":  # two columns, swept together
         rhs = np.column_stack([p.ravel(), rng.random(g.size)])
         args = (a.indptr, a.indices, a.data, 0.01, rhs, g.nx, 1e-15, 200)
     else:
@@ -484,12 +484,13 @@ def test_jacobi_solve_refuses_when_too_many_terms(rng):
 def test_red_black_needs_about_half_the_jacobi_sweeps_on_a_rectangle(rng):
     """Rectangular grid (the colouring follows the rows of nx cells): the solution
     matches LU, and the sweeps are at most 60 % of the Jacobi series' terms."""
-    from harness.kernels import jacobi_series, red_black
+    from harness.compiled.fokker_planck import jacobi_series, red_black
 
     g = Grid(48, 40, 0.0, 1.2, 0.0, 1.0)
     a = FokkerPlanck(g, 5e-5).matrix(random_velocity(g, rng, 1.0))
     p = random_density(g, rng).ravel()
-    x, sweeps, res = red_black(a.indptr, a.indices, a.data, 0.05, p, g.nx, 1e-15, 400)
+    x, sweeps, res = red_black(a.indptr, a.indices, a.data, 0.05, p[:, None], g.nx, 1e-15, 400)
+    x = x[:, 0]
     _, terms, _ = jacobi_series(a.indptr, a.indices, a.data, 0.05, p, 1e-15, 400)
     ref = spla.splu((sp.identity(g.size, format="csc") - 0.05 * a).tocsc()).solve(p)
     assert res <= 1e-15
@@ -509,13 +510,14 @@ def test_red_black_refuses_a_wrong_row_length(rng):
 
 
 def test_red_black_at_its_sweep_limit_returns_the_iterate_and_its_residual(rng):
-    from harness.kernels import red_black
+    from harness.compiled.fokker_planck import red_black
 
     g = Grid.square(32)
     a = FokkerPlanck(g, 5e-5).matrix(random_velocity(g, rng, 1.0))
     p = random_density(g, rng).ravel()
     system = (sp.identity(g.size, format="csr") - 0.2 * a).tocsr()
-    x, sweeps, res = red_black(a.indptr, a.indices, a.data, 0.2, p, g.nx, 1e-15, 2)
+    x, sweeps, res = red_black(a.indptr, a.indices, a.data, 0.2, p[:, None], g.nx, 1e-15, 2)
+    x = x[:, 0]
     assert sweeps == 2 and res > 1e-15
     residual = np.abs(p - system @ x).sum() / np.abs(p).sum()
     assert residual == pytest.approx(res, rel=1e-9)

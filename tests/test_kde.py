@@ -61,7 +61,7 @@ def test_binned_agrees_with_exact(n_robots, rng):
     assert np.abs(p_b - p_e).max() < 6e-3 * p_e.max()
     assert np.abs(g_b - g_e).max() < 1e-2 * np.abs(g_e).max()
     # the compiled binning equals its numpy reference
-    from harness.kernels import linear_binning
+    from harness.compiled.binning import linear_binning
 
     np.testing.assert_allclose(
         linear_binning(positions, 0.0, 1.0, 0.0, 1.0, 120, 120),
@@ -78,7 +78,7 @@ def test_parallel_binning_equals_reference_and_is_independent_of_thread_count(n_
     """
     import numba
 
-    from harness.kernels import BIN_BATCH, bin_chunk_size, linear_binning_chunked
+    from harness.compiled.binning import BIN_BATCH, bin_chunk_size, linear_binning_chunked
 
     g = Grid.square(30)
     kde = KDE(g, 0.04)

@@ -273,7 +273,7 @@ class BandLimit:
         gradient components (``k = 1, 2``: the fields ``G_x Pi w``, ``G_y Pi w``) between
         cell ``i`` and cell ``i + BAND_OFFSETS[o]`` (0 where that cell is off the grid),
         shape ``(3, 6, M + 1)``: column ``M``, zero, is what an absent neighbour reads
-        in :func:`harness.kernels.band_transition_variance` (:func:`band_correlations`).
+        in :func:`harness.compiled.filters.band_transition_variance` (:func:`band_correlations`).
         """
         return band_correlations(self)
 

@@ -102,17 +102,17 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
-from harness.fokker_planck import FokkerPlanck, NumericalError, implicit_solve
-from harness.grid import Grid
-from harness.kernels import (
+from harness.compiled.filters import (
     band_gram,
     band_rows,
     band_transition_variance,
     pinned_band_operator,
     weighted_poisson_pcg,
 )
-from harness.kernels import squared_transition as compiled_squared_transition
+from harness.compiled.filters import squared_transition as compiled_squared_transition
+from harness.filters.common import BandLimit, FilterSettings, MeasurementModel
+from harness.fokker_planck import FokkerPlanck, NumericalError, implicit_solve
+from harness.grid import Grid
 from harness.velocity import VelocityField
 
 
@@ -120,7 +120,7 @@ def squared_transition(a: sp.csr_matrix, dt: float, d: np.ndarray) -> np.ndarray
     """``(F1 o F1) d`` with ``F1 = I + dt A``: the diagonal of ``F1 diag(d) F1^T``.
 
     ``d`` may hold several columns. Compiled, one pass over ``A``
-    (:func:`harness.kernels.squared_transition`); :func:`squared_transition_reference`
+    (:func:`harness.compiled.filters.squared_transition`); :func:`squared_transition_reference`
     is the numpy statement.
     """
     a = a.tocsr()
@@ -152,7 +152,7 @@ def transition_variance(
     of ``d`` (``S = diag(sqrt(d))``, ``F1 = I + dt A``, ``A`` 5-point on a grid of
     ``nx`` columns), ``R`` the band's correlations ``rho`` (``(1 or c, 6, M + 1)``, as
     :meth:`harness.filters.common.BandLimit.correlations` gives them; compiled,
-    :func:`harness.kernels.band_transition_variance`), or ``R = I`` when ``rho`` is
+    :func:`harness.compiled.filters.band_transition_variance`), or ``R = I`` when ``rho`` is
     None (every mode kept): then it is :func:`squared_transition`. Derivation in the
     module docstring; :func:`transition_variance_reference` is the dense statement.
     """
@@ -198,7 +198,7 @@ class WeightedPoisson:
       with the cells numbered along the longer side first its bandwidth is ``2
       min(n_x, n_y)``: a factor costs ``M w^2`` operations (LAPACK ``pbtrf``) and a
       solve ``2 M w``. The whole iteration is one compiled call
-      (:func:`harness.kernels.weighted_poisson_pcg`, the operator matrix-free);
+      (:func:`harness.compiled.filters.weighted_poisson_pcg`, the operator matrix-free);
       :meth:`solve_reference` is the same iteration in numpy with a sparse LU;
     * larger grids: ``S^{-1/2} (G^T G)^+ S^{-1/2}`` with ``S`` the per-cell mean of
       ``C`` over its two components; ``G^T G`` is diagonal in the orthonormal DCT-II
@@ -270,8 +270,8 @@ class WeightedPoisson:
     def _band_factor(self, c: np.ndarray) -> np.ndarray:
         """Banded Cholesky factor of ``G^T diag(c) G`` with cell 0 pinned (its row and
         column replaced by the unit vector), cells in ``self._order``, in the layout of
-        :func:`harness.kernels.band_cholesky_solve`: the band assembled by
-        :func:`harness.kernels.pinned_band_operator` (:meth:`_band_operator_reference`
+        :func:`harness.compiled.filters.band_cholesky_solve`: the band assembled by
+        :func:`harness.compiled.filters.pinned_band_operator` (:meth:`_band_operator_reference`
         states it with the sparse product), factored by LAPACK ``pbtrf``.
         """
         g, m = self.grid, self.grid.size
@@ -286,7 +286,7 @@ class WeightedPoisson:
 
     def _band_operator_reference(self, c: np.ndarray, width: int | None = None) -> np.ndarray:
         """The pinned operator's lower band storage from the sparse product ``G^T diag(c)
-        G`` (numpy; the statement of :func:`harness.kernels.pinned_band_operator`);
+        G`` (numpy; the statement of :func:`harness.compiled.filters.pinned_band_operator`);
         ``width`` defaults to the widest coupling in that ordering.
         """
         op = (self.gt @ sp.diags(c) @ self.g).tocoo()
@@ -302,7 +302,7 @@ class WeightedPoisson:
 
     def _refactor(self, c: np.ndarray) -> None:
         """The small grids' preconditioner from ``c``: :meth:`_band_factor`, its rows
-        (:func:`harness.kernels.band_rows`) and its diagonal's reciprocals.
+        (:func:`harness.compiled.filters.band_rows`) and its diagonal's reciprocals.
         """
         factor = self._band_factor(c)
         self._factor_rows = band_rows(factor)
@@ -484,7 +484,7 @@ class BandPoisson:
 
     def gram(self, c: np.ndarray) -> np.ndarray:
         """``B^T G^T diag(c) G B`` (``K x K``) for gradient-grid weights ``c`` (2M),
-        compiled (:func:`harness.kernels.band_gram`, upper triangle, mirrored here;
+        compiled (:func:`harness.compiled.filters.band_gram`, upper triangle, mirrored here;
         :meth:`gram_reference` is the numpy statement).
         """
         upper = np.triu(self._upper(c))
