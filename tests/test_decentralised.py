@@ -15,9 +15,9 @@ from harness.build import build
 from harness.control import PaperControl
 from harness.loop import ClosedLoop
 from harness.mcap_log import METRIC_KEYS
+from harness.run import run
 
 NETWORK_KEYS = METRIC_KEYS[-6:]
-from harness.run import run
 
 SMALL = ("grid.n=16", "agents.n=600", "sim.dt=0.01", "log.progress=off")  # binned plant KDE
 
