@@ -15,6 +15,7 @@ from harness.build import build
 from harness.control import PaperControl
 from harness.loop import ClosedLoop
 from harness.mcap_log import METRIC_KEYS
+from harness.records import Command, ControlInput
 from harness.run import run
 
 NETWORK_KEYS = METRIC_KEYS[-6:]
@@ -37,16 +38,18 @@ def test_complete_graph_robots_equal_the_centralised_reference_in_the_loop(compo
     for step in range(40):
         robots = rec.estimate.robots
         assert robots is not None
-        scale = np.abs(robots.p_central).max()
-        gap = np.abs(robots.p_hat - robots.p_central.ravel()).max()
+        p_central = rec.estimate.fields["p_hat_central"]
+        scale = np.abs(p_central).max()
+        gap = np.abs(robots.p_hat - p_central.ravel()).max()
         assert gap < 1e-10 * scale, (step, gap)
-        assert robots.network["central_gap_l2"] < 1e-10
-        assert robots.network["components"] == 1.0
-        np.testing.assert_allclose(rec.estimate.p_hat, robots.p_central, atol=1e-10 * scale)
-        v = loop.v
-        assert v is not None and v.robots is not None
-        broadcast = interpolate(parts.grid, v.centres, loop.plant.positions)
-        np.testing.assert_allclose(v.robots, broadcast, atol=1e-10 * np.abs(broadcast).max())
+        assert rec.estimate.metrics["central_gap_l2"] < 1e-10
+        assert rec.estimate.metrics["components"] == 1.0
+        np.testing.assert_allclose(rec.estimate.p_hat, p_central, atol=1e-10 * scale)
+        command = loop.command
+        assert command is not None and command.robots is not None and command.field is not None
+        broadcast = interpolate(parts.grid, command.field.centres, loop.plant.positions)
+        scale_v = np.abs(broadcast).max()
+        np.testing.assert_allclose(command.robots, broadcast, atol=1e-10 * scale_v)
         rec = loop.step()
 
 
@@ -57,7 +60,7 @@ def test_disconnected_robots_drift_apart_and_away_from_the_reference(compose):
     rec = loop.start()
     for _ in range(5):
         rec = loop.step()
-    net = rec.estimate.robots.network
+    net = rec.estimate.metrics
     assert net["components"] == 600.0 and net["mean_degree"] == 0.0
     assert net["messages"] == 0.0 and net["algebraic_connectivity"] == 0.0
     # one robot's own kernel has L2 norm 1 / (2 sqrt(pi) h) ~ 7 (away from the walls)
@@ -114,7 +117,7 @@ def test_k_nearest_graph_runs(compose):
     loop, _ = _loop(compose, ["estimator.radius=null", "estimator.k_nearest=6"])
     loop.start()
     rec = loop.step()
-    assert rec.estimate.robots.network["mean_degree"] >= 6.0
+    assert rec.estimate.metrics["mean_degree"] >= 6.0
 
 
 def test_a_law_without_cell_values_is_refused(refusal, tmp_path):
@@ -126,30 +129,52 @@ def test_a_law_without_cell_values_is_refused(refusal, tmp_path):
 
 
 class FieldOnly:
-    """A law on fields only (no ``at_cells``)."""
+    """A law on fields only (it does not evaluate the robots' own estimates)."""
+
+    gives_field = True
+    own_estimates = False
 
     def __init__(self, target, alpha, sigma, **debias):
-        from harness.control import PaperControl
-
         self.inner = PaperControl(target, alpha, sigma, **debias)
 
-    def __call__(self, p_hat, q_hat):
-        return self.inner(p_hat, q_hat)
+    def __call__(self, inp: ControlInput) -> Command:
+        return Command(self.inner.field(inp.estimate.p_hat, inp.estimate.q_hat))
 
     def feedback_diffusivity(self, p0):
         return self.inner.feedback_diffusivity(p0)
 
 
 class CappedPaper(PaperControl):
-    """A law that changes ``__call__`` but inherits ``at_cells``: refused."""
+    """A law that changes ``field`` but inherits ``at_cells``: refused."""
 
-    def __call__(self, p_hat, q_hat):
-        return super().__call__(p_hat, q_hat)
+    def field(self, p_hat, q_hat):
+        return super().field(p_hat, q_hat)
+
+
+class SamePaper(PaperControl):
+    """A subclass that changes neither: the parent's cell values are its own."""
 
 
 def test_a_law_that_inherits_another_laws_cell_values_is_refused(refusal):
+    assert PaperControl.own_estimates and SamePaper.own_estimates
+    assert not CappedPaper.own_estimates
     message = refusal(
         ["estimator=distributed", *SMALL, "control._target_=tests.test_decentralised.CappedPaper"]
     )
     assert message is not None and message.startswith("invalid config: control="), message
-    assert "inherits at_cells from PaperControl" in message
+    assert "own at_cells" in message
+
+
+def test_a_law_without_a_field_is_refused_where_a_field_is_needed(refusal):
+    """The mean-field plant, the agents plant's limit and the filters need the field."""
+    law = "control._target_=tests.test_decentralised.RobotsOnly"
+    for overrides in (["plant=meanfield", "estimator=exact"], ["estimator=kde"], []):
+        message = refusal([*SMALL, law, *overrides])
+        assert message is not None and message.startswith("invalid config: control="), message
+        assert "velocity field" in message
+
+
+class RobotsOnly(FieldOnly):
+    """A law that moves robots only."""
+
+    gives_field = False
