@@ -12,10 +12,10 @@ time is the work done; with numba's threads it sums the threads), BLAS pinned to
 thread, numba to ``--threads`` (default 1).
 
 ``--app`` times the loop the app builds instead (:func:`app_loop`, what ``make bench``
-runs): the figure the issue's target is about, with the centralised reference filters,
+runs): the figure its target is about, with the centralised reference filters,
 the plant's KDE and limit loop and the logged network metrics included.
 
-Targets (issue 14): the closed loop -- graph + consensus + per-robot filters + per-robot
+Targets: the closed loop -- graph + consensus + per-robot filters + per-robot
 law (+ model and robot step) -- <= 20 ms per step (>= 50 steps/s) at N = 1024, n = 30,
 ``gradient="grid"``, radius 0.05 to 0.2 and k-nearest; N = 4096 must run. Each line
 prints its figure against the target; memory is the bytes held per robot.
@@ -180,7 +180,7 @@ def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
 
 
 def bench_app(quick: bool) -> bool:
-    """The app-built decentralised loop against the issue's target."""
+    """The app-built decentralised loop against its target."""
     print("Decentralised loop as the app builds it (n = 30, estimator=distributed):")
     ok = True
     cases = [(1024, 0.1, "grid", 200, TARGET_MS), (4096, 0.05, "grid", 20, None)]

@@ -8,8 +8,8 @@ The paper's loop as the app builds it (robots, KDE, both fast filters, the paper
 mean over the cells of the density filter's posterior gain ``d+ / r`` (dimensionless;
 ``d+`` the posterior variance, ``r`` the KDE's variance, both 1 / length^4) and of its
 prior ``d- / r``. "band" is the harness's prediction ``diag(F1 S R S F1^T)``; "white"
-the same run with ``R = I`` (``LocalFilters.correlations = None``, the prediction before
-issue 12's fifth round), whose gain falls with the grid because a white covariance's
+the same run with ``R = I`` (``LocalFilters.correlations = None``, a white per-cell
+prediction), whose gain falls with the grid because a white covariance's
 grid-scale modes diffuse away at ``8 dt sigma / dx^2`` per step. Not a speed benchmark.
 """
 

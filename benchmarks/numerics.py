@@ -7,7 +7,7 @@ pinned to one thread (threadpoolctl) as in the run loop; numba uses its default
 thread count (all cores). Run with nothing else on the machine: on a busy machine
 the parallel compiled loops wait for descheduled threads and every figure is pessimistic.
 
-Figures (targets from the issue):
+Figures (each against its target):
 
 * Fokker-Planck step (``FokkerPlanck.step`` with matrix assembly), mid-run paper
   settings (sigma = 5e-5, dt = 0.01, the paper's law with alpha = 0.003 evaluated

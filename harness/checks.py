@@ -41,9 +41,6 @@ from harness.kde import KDE
 MAX_STEPS = 10_000_000
 """Largest number of steps ``sim.t_final / sim.dt`` of one run."""
 
-PROGRESS = ("auto", "on", "off")
-"""Values of ``log.progress``."""
-
 MIN_BANDWIDTH_CELLS = 0.1
 """``kde.bandwidth`` is at least this fraction of the cell size: a kernel much narrower
 than a cell is sampled only at cell centres, so its grid integral is no longer 1 and
@@ -79,8 +76,9 @@ SHARED_KEYS = frozenset(
         "log.live_port",
     }
 )
-"""Keys of the shared blocks that the harness reads itself; any other key outside the
-component nodes must be read by a component through interpolation
+"""Keys of the shared blocks that the harness reads itself, and the ``log`` block the
+observers read (allowed also when a config leaves an observer out); any other key
+outside the component nodes must be read by a component through interpolation
 (:func:`check_unread`)."""
 
 PRESENTATION_KEYS = (
@@ -127,11 +125,13 @@ def _shared(key: str, check: Any, *args: Any) -> Any:
 
 
 def check_shared(cfg: DictConfig) -> None:
-    """The shared blocks: ``seed``, ``grid``, ``agents``, ``dynamics``, ``sim``, ``kde``,
-    ``log`` (types and ranges), and the time step against the horizon and the domain.
+    """The shared blocks: ``seed``, ``grid``, ``agents``, ``dynamics``, ``sim``, ``kde``
+    (types and ranges), and the time step against the horizon and the domain. (The
+    ``log`` block's values are the observers' parameters, checked when they are built.)
     """
     _shared("seed", integer, cfg.get("seed"), 0)
-    grid, sim, kde, log = (_block(cfg, b) for b in ("grid", "sim", "kde", "log"))
+    grid, sim, kde = (_block(cfg, b) for b in ("grid", "sim", "kde"))
+    _block(cfg, "log")  # read by the observers, which check their own values
     n = _shared("grid.n", integer, grid.get("n"), 4)
     if n > 512:
         raise ConfigError("grid.n", n, "at most 512 (memory)")
@@ -155,18 +155,6 @@ def check_shared(cfg: DictConfig) -> None:
     _shared("kde.debias", flag, kde.get("debias"))
     if kde.get("method") not in KDE.METHODS:
         raise ConfigError("kde.method", kde.get("method"), f"one of {', '.join(KDE.METHODS)}")
-    _shared("log.field_every", integer, log.get("field_every"), 1)
-    _shared("log.positions_every", integer, log.get("positions_every"), 1)
-    _shared("log.w2_every", integer, log.get("w2_every"), 1)
-    _shared("log.floor_draws", integer, log.get("floor_draws"), 2)
-    _shared("log.live", flag, log.get("live"))
-    port = _shared("log.live_port", integer, log.get("live_port"), 0)
-    if port > 65535:
-        raise ConfigError("log.live_port", port, "a TCP port, 0 to 65535 (0: any free port)")
-    if not isinstance(log.get("live_host"), str) or not log.get("live_host"):
-        raise ConfigError("log.live_host", log.get("live_host"), "an address such as 127.0.0.1")
-    if log.get("progress") not in PROGRESS:
-        raise ConfigError("log.progress", log.get("progress"), f"one of {', '.join(PROGRESS)}")
     if dt > t_final:
         raise ConfigError("sim.dt", dt, f"at most sim.t_final = {t_final}")
     if t_final / dt > MAX_STEPS:

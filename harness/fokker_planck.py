@@ -274,10 +274,10 @@ class FokkerPlanck:
         count depends on ``dt`` times the largest outflow rate only; it is positive
         and mass-conserving by construction. The sparse LU solve (:meth:`step_lu`) is
         the last resort when it would need more than ``_MAX_JACOBI_TERMS`` sweeps.
-        (Before issue 12's fourth round, small ``rho = dt ||A||_1`` took the truncated
-        Neumann series ``sum_k (dt A)^k p`` instead, which :func:`implicit_solve` keeps
-        for callers without the grid's shape: after ``K`` terms the remainder is at most
-        ``rho^(K+1) / (1 - rho) ||p||_1``, and each term with ``k >= 1`` has zero mass.)
+        Callers without the grid's shape get the truncated Neumann series ``sum_k (dt
+        A)^k p`` from :func:`implicit_solve`: after ``K`` terms the remainder is at most
+        ``rho^(K+1) / (1 - rho) ||p||_1`` (``rho = dt ||A||_1``), and each term with
+        ``k >= 1`` has zero mass.
 
         Raises:
             NumericalError: if ``v`` or the result is not finite, the result has a

@@ -25,7 +25,7 @@ Two evaluation paths give the same estimator:
   paper's settings. The binning grid need not follow the evaluation grid, only the
   kernel: on grids finer than ``h / KERNEL_CELLS`` per cell the spacing stays at
   ``h / (KERNEL_CELLS factor)`` (:func:`binning_nodes`), the paper's accuracy, so the
-  cost no longer grows like ``n^3`` (at ``n = 256``, ``h = 0.04``: 120 nodes per
+  cost does not grow like ``n^3`` (at ``n = 256``, ``h = 0.04``: 120 nodes per
   axis instead of 1024).
 
 ``method="auto"`` uses ``exact`` up to ``exact_max_robots`` robots.

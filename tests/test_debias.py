@@ -1,4 +1,4 @@
-"""The debiased loop puts the robots on p_*; the paper's loop sharpens them (issue 11)."""
+"""The debiased loop puts the robots on p_*; the paper's loop sharpens them."""
 
 import numpy as np
 import pytest

@@ -23,6 +23,8 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 from mcap_protobuf.schema import build_file_descriptor_set
 
+import harness.live
+import harness.mcap_log
 import harness.run as harness_run
 from analysis.load import load_run
 from harness.grid import Grid
@@ -311,8 +313,8 @@ def test_live_run_publishes_while_running_and_leaves_the_log_unchanged(
             (bounded) for the client's subscription, so the rest of the run is seen live.
             """
 
-            def __init__(self, *args, **kwargs):
-                super().__init__(*args, **kwargs)
+            def open(self, *args, **kwargs):
+                super().open(*args, **kwargs)
                 assert self.live is not None  # log.live=true reached the logger
                 self._waited: set[str] = set()
 
@@ -334,8 +336,8 @@ def test_live_run_publishes_while_running_and_leaves_the_log_unchanged(
                 received_before_end.append(len(client.messages))
                 super().finalize(*args, **kwargs)
 
-        monkeypatch.setattr(harness_run, "LiveServer", KeptOpen)
-        monkeypatch.setattr(harness_run, "McapLogger", WaitingLogger)
+        monkeypatch.setattr(harness.live, "LiveServer", KeptOpen)
+        monkeypatch.setattr(harness.mcap_log, "McapLogger", WaitingLogger)
         with Client(server.url, set(watched)) as client:
             on = harness_run.run(compose([*TINY, "log.live=true"]), tmp_path / "on")
             assert on.state == "completed"

@@ -64,8 +64,8 @@ grows, in one compiled call (:class:`WeightedPoisson`), and the result is projec
 the band (below). On finer grids with a band limit it is solved
 within the band (:class:`BandPoisson`): the exact posterior mean of the band-limited
 state, a dense system of the band's ``K`` modes (about 330 at the paper's ``h``) whose
-cost does not grow with the grid (issue 12: 50 to 100 preconditioned iterations on the
-grid at ``n = 256`` before). With ``A = 0`` and ``q = 0`` the filter is the
+cost does not grow with the grid (an iteration on the grid takes 50 to 100
+preconditioned iterations at ``n = 256``). With ``A = 0`` and ``q = 0`` the filter is the
 reference.
 
 Band limit (why the filters are stable at every grid size). The KDE measures the
