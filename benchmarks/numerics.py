@@ -1,4 +1,4 @@
-"""Numerics benchmarks of the fine-grid issue: each figure against its target.
+"""Numerics benchmarks of the fine grids: each figure against its target.
 
     python -m benchmarks.numerics [--quick]
 
