@@ -38,10 +38,10 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg as sl
 import scipy.sparse as sp
-from hydra import compose, initialize_config_dir
 from threadpoolctl import threadpool_limits
 
 from analysis.load import load_run
+from harness.api import compose
 from harness.densities import DEFAULT_TARGET
 from harness.grid import Grid
 from harness.kde import KDE, kernel_1d
@@ -53,13 +53,6 @@ from harness.swarm_metrics import (
     swarm_w2,
 )
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
-
-
-def compose_cfg(overrides: list[str]):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("closed_loop", overrides=overrides)
-
 
 def run_one(
     law: str, n: int, t_final: float, seed: int, draws: int, every: float, out: Path
@@ -67,7 +60,7 @@ def run_one(
     """One run of the paper's loop (``law = paper``) or the debiased loop
     (``kde.debias=true``) through the harness; the swarm metrics every ``every`` s."""
     stride = max(1, round(every / 0.01))
-    cfg = compose_cfg(
+    cfg = compose(
         [
             f"agents.n={n}",
             f"sim.t_final={t_final}",

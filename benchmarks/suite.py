@@ -103,23 +103,15 @@ def bench_fokker_planck() -> bool:
     return ok
 
 
-def compose_config(overrides: list[str]):
-    """The app's config with ``overrides``."""
-    from hydra import compose, initialize_config_dir
-
-    conf = str(Path_(__file__).resolve().parents[1] / "conf")
-    with initialize_config_dir(config_dir=conf, version_base="1.3"):
-        return compose("closed_loop", overrides=overrides)
-
-
 def closed_loop_rate(n: int, method: str, steps: int) -> float:
     """Closed-loop steps per second: agents, KDE, both filters, paper's law, reference;
     the inverse of the median wall time of a step over ``steps`` steps after the first
     (the median, as the issues ask: a step that the host delays does not move it)."""
+    from harness.api import compose
     from harness.build import build
     from harness.loop import ClosedLoop
 
-    cfg = compose_config([f"grid.n={n}", f"filter.method={method}"])
+    cfg = compose([f"grid.n={n}", f"filter.method={method}"])
     parts = build(cfg)
     loop = ClosedLoop(
         parts.plant, parts.estimator, parts.control, parts.model, 0.01, np.random.default_rng(0)
@@ -196,9 +188,10 @@ def bench_sweeps() -> bool:
     verdict = "OK" if met else "MISSED"
     print(f"  {'ratio two jobs / one job':<52s} {ratio:9.2f}      target <= 1.15    {verdict}")
     # logging share of a run's wall time, default rates
+    from harness.api import compose
     from harness.run import run
 
-    cfg = compose_config(["sim.t_final=20", "log.progress=off"])
+    cfg = compose(["sim.t_final=20", "log.progress=off"])
     with tempfile.TemporaryDirectory() as tmp:
         result = run(cfg, Path_(tmp))
     share = result.log_s / result.wall_s

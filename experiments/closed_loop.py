@@ -9,6 +9,9 @@ value that is not allowed stops the app before anything is written, with one lin
 naming the key, the value and what is allowed, and exit status 2 (the check runs in
 :class:`harness.jobs.CheckCallback`; in a multirun each job checks its own config).
 Hydra's own flags (``--cfg job``, ``--info``, ``--help``, ``-cn``, ``-m``) work as usual.
+The configs are read from :data:`harness.api.CONFIG_DIR` (``conf/``, shipped inside the
+package), so the app runs from any directory, installed or not; ``harness.api`` composes
+the same configs from Python.
 """
 
 from __future__ import annotations
@@ -24,12 +27,13 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
+from harness.api import CONFIG_DIR
 from harness.checks import ConfigError, describe
 from harness.jobs import checked, finish_sweep, run_job
 from harness.run import DiskFull, run
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="closed_loop")
+@hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="closed_loop")
 def main(cfg: DictConfig) -> None:
     """Run one closed loop (or one job of a multirun) and print where its log is."""
     hc = HydraConfig.get()

@@ -1,24 +1,20 @@
 """Shared fixtures: grids and targets, seeded generators, and composed configs.
 
 Configs are composed from ``conf/`` exactly as the app composes them
-(:func:`compose`); ``group_option`` parametrizes a test over every option of every
-config group found in ``conf/``, so a new option is tested without editing tests.
+(:func:`harness.api.compose`); ``group_option`` parametrizes a test over every option of
+every config group found in ``conf/``, so a new option is tested without editing tests.
 """
 
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 import numpy as np
 import pytest
-from hydra import compose as hydra_compose
-from hydra import initialize_config_dir
 from omegaconf import DictConfig
 
+from harness.api import CONFIG_DIR, compose
 from harness.densities import DEFAULT_TARGET, Target
 from harness.grid import Grid
 
-ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "conf"
 GROUPS = ("plant", "estimator", "control", "target", "init", "experiment")
 SMOKE = (
     "grid.n=12",
@@ -32,15 +28,9 @@ SMOKE = (
 """A seconds-long run of the default loop: 10 steps on a 12 x 12 grid with 200 robots."""
 
 
-def compose_config(overrides: Sequence[str] = ()) -> DictConfig:
-    """The app's config with ``overrides``, composed as the app composes it."""
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return hydra_compose("closed_loop", overrides=list(overrides))
-
-
 def group_options() -> list[tuple[str, str]]:
     """Every ``(group, option)`` pair in ``conf/``."""
-    return [(g, p.stem) for g in GROUPS for p in sorted((CONF / g).glob("*.yaml"))]
+    return [(g, p.stem) for g in GROUPS for p in sorted((CONFIG_DIR / g).glob("*.yaml"))]
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
@@ -49,14 +39,14 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize("group_option", pairs, ids=[f"{g}={o}" for g, o in pairs])
 
 
-@pytest.fixture(scope="session")
-def compose() -> Callable[..., DictConfig]:
+@pytest.fixture(name="compose", scope="session")
+def compose_fixture() -> Callable[..., DictConfig]:
     """``compose(overrides)``: the app's config with those overrides."""
-    return compose_config
+    return compose
 
 
 @pytest.fixture(scope="session")
-def refusal(compose: Callable[..., DictConfig]) -> Callable[[Sequence[str]], str | None]:
+def refusal() -> Callable[[Sequence[str]], str | None]:
     """``refusal(overrides)``: the one-line refusal of a config (composition or build), or
     None when it is accepted.
     """

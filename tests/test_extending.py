@@ -20,6 +20,13 @@ def example_files() -> dict[str, str]:
     return {name: f"# file: {name}\n{body}" for name, body in BLOCK.findall(text)}
 
 
+def example_env(tmp_path):
+    """The environment of a run: the examples' modules, and this checkout's code (not
+    another copy of the project that may be installed)."""
+    path = os.pathsep.join([str(tmp_path / "my_components"), str(ROOT)])
+    return {**os.environ, "PYTHONPATH": path}
+
+
 def test_the_page_has_one_module_and_one_yaml_per_component():
     names = sorted(example_files())
     assert names == [
@@ -54,7 +61,7 @@ def test_each_example_runs_out_of_tree(tmp_path, smoke, override):
         path = tmp_path / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text)
-    env = {**os.environ, "PYTHONPATH": str(tmp_path / "my_components")}
+    env = example_env(tmp_path)
     run_dir = tmp_path / "run"
     proc = subprocess.run(
         [
@@ -90,7 +97,7 @@ def test_an_example_parameter_is_checked_by_its_component(tmp_path):
         path = tmp_path / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text)
-    env = {**os.environ, "PYTHONPATH": str(tmp_path / "my_components")}
+    env = example_env(tmp_path)
     proc = subprocess.run(
         [
             sys.executable,

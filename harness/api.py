@@ -1,0 +1,193 @@
+"""The Python API: compose a config, run it to a log, or step it in memory.
+
+    from harness import api
+
+    cfg = api.compose(["grid.n=30", "sim.t_final=20"])    # what the command line composes
+    log = api.run(cfg, "outputs/mine")                     # its run.mcap, loaded back
+    log.metrics["phat_target_l2"]                          # one array per metric
+
+    for rec, m in api.simulate(["control=heat", "sim.t_final=5"]):   # nothing written
+        print(rec.t, m["phat_target_l2"])
+
+:func:`compose` and :func:`run` give the same config and the same log as
+``python -m experiments.closed_loop OVERRIDES hydra.run.dir=OUT_DIR``; :func:`simulate`
+steps the same loop, with the same numbers, and yields each step's record and metrics
+instead of logging them. Configs come from :data:`CONFIG_DIR`, which ships inside the
+package, so all of this works from any directory and from an installed (non-editable)
+package; ``hydra.searchpath=[file://DIR]`` adds a directory of your own components'
+configs, as on the command line (``docs/extending.md``).
+"""
+
+from __future__ import annotations
+
+import copy as copy_
+import warnings
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse.linalg as spla
+from omegaconf import DictConfig
+from threadpoolctl import ThreadpoolController
+
+from analysis.load import RunLog, load_run
+from harness.build import Experiment, build
+from harness.loop import ClosedLoop
+from harness.metrics import SwarmTruth, metrics
+from harness.records import StepRecord
+from harness.run import check_finite
+from harness.run import run as run_to_log
+
+__all__ = [
+    "CONFIG_DIR",
+    "Metrics",
+    "RunLog",
+    "StepRecord",
+    "compose",
+    "load_run",
+    "run",
+    "simulate",
+]
+
+CONFIG_DIR: Path = (Path(__file__).parent / "conf").resolve()
+"""The project's configs (``conf/`` at the repository root): ``harness/conf`` is a
+symbolic link to it in the source tree and a copy of it in an installed package. The
+command line (:mod:`experiments.closed_loop`) reads its configs from here too."""
+
+Metrics = dict[str, float | None]
+"""One step's metrics, keyed as :data:`harness.metrics.METRIC_KEYS` (None where a metric
+is not evaluated at that step or does not apply to the loop)."""
+
+
+def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> DictConfig:
+    """The config the command line composes from ``overrides``.
+
+    The ``hydra`` node is left out, as in the config a command-line run receives.
+    Works repeatedly in one process, from any current directory, and inside a running
+    Hydra app or an initialised Hydra (whose global state is set aside and restored).
+
+    Args:
+        overrides: Hydra overrides, as on the command line (``"grid.n=30"``,
+            ``"control=heat"``, ``"+experiment=smoke"``,
+            ``"hydra.searchpath=[file:///abs/my_conf]"``).
+        config_name: The primary config in :data:`CONFIG_DIR`.
+
+    Returns:
+        The composed config (not yet checked: :func:`run`, :func:`simulate` and
+        :func:`harness.build.build` check it).
+
+    Raises:
+        hydra.errors.HydraException, omegaconf.errors.OmegaConfBaseException: for an
+            override that does not compose (an unknown key or option, a bad value).
+    """
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    global_hydra = GlobalHydra.instance()
+    outer = global_hydra.hydra if global_hydra.is_initialized() else None
+    global_hydra.clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            return hydra_compose(config_name, overrides=list(overrides))
+    finally:
+        global_hydra = GlobalHydra.instance()
+        global_hydra.clear()
+        if outer is not None:
+            global_hydra.initialize(outer)
+
+
+def _config(config: DictConfig | Sequence[str]) -> DictConfig:
+    """``config`` itself, or the config composed from these overrides."""
+    if isinstance(config, DictConfig):
+        return config
+    if isinstance(config, str):
+        raise TypeError("pass a config or a sequence of overrides, not a single string")
+    return compose(config)
+
+
+def run(config: DictConfig | Sequence[str], out_dir: str | Path) -> RunLog:
+    """Run a closed loop to ``out_dir / "run.mcap"``, as the command line does, and load
+    the log back.
+
+    Args:
+        config: A config (:func:`compose`) or the overrides to compose one from.
+        out_dir: The run directory (created if missing; must not hold a ``run.mcap``).
+
+    Returns:
+        The log (:func:`analysis.load.load_run`); ``log.state`` is ``completed``, or
+        ``diverged`` when the numbers broke down (the reason is in
+        ``log.metadata["status"]``).
+
+    Raises:
+        harness.checks.ConfigError: before anything is written, for a value that is not
+            allowed, an existing log in ``out_dir`` or a log larger than the free disk.
+        harness.run.DiskFull: when the disk fills during the run.
+        KeyboardInterrupt, Exception: re-raised after the log is finalised ``aborted``.
+    """
+    out = Path(out_dir)
+    result = run_to_log(_config(config), out)
+    return load_run(result.log_path)
+
+
+def simulate(
+    config: DictConfig | Sequence[str], t_final: float | None = None, *, copy: bool = True
+) -> Iterator[tuple[StepRecord, Metrics]]:
+    """Step a closed loop in memory: each step's record and metrics, nothing written.
+
+    The loop, its random stream and its metrics are those of :func:`run` with the same
+    config, so the metrics equal the logged ones. The config is checked (and the loop
+    built) when this is called, before the first step.
+
+    Args:
+        config: A config (:func:`compose`) or the overrides to compose one from.
+        t_final: Simulated time (s), in place of ``sim.t_final``; yields
+            ``round(t_final / sim.dt) + 1`` steps, ``t = 0`` first.
+        copy: Yield a copy of each record. The loop overwrites some of a record's arrays
+            in place at the next step (the robots' positions; each robot's estimates in
+            a decentralised loop); with ``copy=False`` a record is valid only until the
+            next one is drawn, which saves the copy.
+
+    Returns:
+        An iterator of ``(record, metrics)`` per step.
+
+    Raises:
+        harness.checks.ConfigError: for a value that is not allowed (at the call).
+        harness.fokker_planck.NumericalError: while iterating, at the step where
+            :func:`run` would end ``diverged`` for a non-finite estimate, velocity or
+            metric or a mass drift.
+    """
+    cfg = _config(config)
+    if t_final is not None:
+        cfg = copy_.deepcopy(cfg)
+        cfg.sim.t_final = float(t_final)
+    parts = build(cfg)
+    return _steps(cfg, parts, copy)
+
+
+def _steps(cfg: DictConfig, parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]]:
+    """The steps of :func:`simulate`, computed as :func:`harness.run.run` computes them."""
+    steps = round(cfg.sim.t_final / cfg.sim.dt)
+    swarm = SwarmTruth(
+        parts.grid,
+        parts.target,
+        cfg.kde.bandwidth,
+        cfg.kde.mirror,
+        cfg.kde.method,
+        cfg.log.positions_every,
+        cfg.log.w2_every,
+        steps,
+    )
+    rng = np.random.default_rng(cfg.seed)
+    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, cfg.sim.dt, rng)
+    blas = ThreadpoolController()
+    for n in range(steps + 1):
+        # as in the run's loop, only while a step computes (not while the caller holds it):
+        # one BLAS thread, and numerical warnings from the harness are errors
+        with blas.limit(limits=1), warnings.catch_warnings():
+            warnings.simplefilter("error", spla.MatrixRankWarning)
+            warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
+            rec = loop.start() if n == 0 else loop.step()
+            values = metrics(loop.grid, parts.target, rec) | swarm(rec)
+            check_finite(values)
+        yield (copy_.deepcopy(rec) if copy else rec), values
