@@ -33,9 +33,8 @@ from threadpoolctl import ThreadpoolController
 from analysis.load import RunLog, load_run
 from harness.build import Experiment, build
 from harness.loop import ClosedLoop
-from harness.metrics import SwarmTruth, metrics
+from harness.observers import RunContext
 from harness.records import StepRecord
-from harness.run import check_finite
 from harness.run import run as run_to_log
 
 __all__ = [
@@ -55,8 +54,8 @@ symbolic link to it in the source tree and a copy of it in an installed package.
 command line (:mod:`experiments.closed_loop`) reads its configs from here too."""
 
 Metrics = dict[str, float | None]
-"""One step's metrics, keyed as :data:`harness.metrics.METRIC_KEYS` (None where a metric
-is not evaluated at that step or does not apply to the loop)."""
+"""One step's metrics, keyed as :data:`harness.mcap_log.METRIC_KEYS` (None where a metric
+is not evaluated at that step; absent where it does not apply to the loop)."""
 
 
 def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> DictConfig:
@@ -162,32 +161,29 @@ def simulate(
         cfg = copy_.deepcopy(cfg)
         cfg.sim.t_final = float(t_final)
     parts = build(cfg)
-    return _steps(cfg, parts, copy)
+    return _steps(parts, copy)
 
 
-def _steps(cfg: DictConfig, parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]]:
-    """The steps of :func:`simulate`, computed as :func:`harness.run.run` computes them."""
-    steps = round(cfg.sim.t_final / cfg.sim.dt)
-    swarm = SwarmTruth(
-        parts.grid,
-        parts.target,
-        cfg.kde.bandwidth,
-        cfg.kde.mirror,
-        cfg.kde.method,
-        cfg.log.positions_every,
-        cfg.log.w2_every,
-        steps,
-    )
-    rng = np.random.default_rng(cfg.seed)
-    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, cfg.sim.dt, rng)
+def _steps(parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]]:
+    """The steps of :func:`simulate`, computed as :func:`harness.run.run` computes them,
+    seen by the observers that compute (``computes``: the metrics, the swarm metrics,
+    the estimator's numbers, the divergence guard); none that writes or shows.
+    """
+    watching = [o for o in parts.observers.values() if getattr(o, "computes", False)]
+    context = RunContext(Path.cwd())
+    for observer in watching:
+        observer.initialize(context)
+    rng = np.random.default_rng(parts.seed)
+    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, parts.dt, rng)
     blas = ThreadpoolController()
-    for n in range(steps + 1):
+    for n in range(parts.steps + 1):
         # as in the run's loop, only while a step computes (not while the caller holds it):
         # one BLAS thread, and numerical warnings from the harness are errors
         with blas.limit(limits=1), warnings.catch_warnings():
             warnings.simplefilter("error", spla.MatrixRankWarning)
             warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
             rec = loop.start() if n == 0 else loop.step()
-            values = metrics(loop.grid, parts.target, rec) | swarm(rec)
-            check_finite(values)
+            values: Metrics = {}
+            for observer in watching:
+                observer.handle(rec, values)
         yield (copy_.deepcopy(rec) if copy else rec), values

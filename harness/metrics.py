@@ -88,6 +88,8 @@ class FieldMetrics:
         sigma: The robots' noise intensity (length^2 / s), for ``rate_exact``.
     """
 
+    computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+
     def __init__(self, grid: Grid, target: Target, control: Control, sigma: float) -> None:
         self.grid, self.target, self.control = grid, target, control
         self.sigma = number("sigma", sigma, 0.0)
@@ -133,6 +135,8 @@ class SwarmTruth:
         floor_draws: Monte-Carlo draws of the finite-N floors (``>= 2``).
         seed: The run's seed.
     """
+
+    computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
 
     def __init__(
         self,

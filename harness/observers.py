@@ -19,7 +19,9 @@ An observer implements :class:`Observer`: ``initialize(run)`` before the loop st
 at the end, whatever happened. ``values`` is the step's dict of numbers, which the
 observers before fill and the ones after read: the metric observers add their keys, the
 guard checks them, the logger writes them. Observers that compute come before those that
-show. Run-time arguments an observer's constructor may name (the builder passes the ones
+show; those that only compute say so (``computes = True``), and an in-memory
+simulation (:func:`harness.api.simulate`) runs just them. Run-time arguments an
+observer's constructor may name (the builder passes the ones
 it names): ``grid``, ``target``, ``control``, ``plant``, ``steps`` (the run's last
 step) and ``identity`` (:class:`harness.identity.RunIdentity`).
 """
@@ -90,6 +92,8 @@ class EstimatorMetrics:
     listed in ``docs`` under the log contract).
     """
 
+    computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+
     def initialize(self, run: RunContext) -> None:
         """Nothing to prepare."""
 
@@ -109,6 +113,8 @@ class DivergenceGuard:
         required: Keys that must be numbers at every step; None for the log contract's
             (:data:`harness.mcap_log.ALWAYS_NUMBERS`).
     """
+
+    computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
 
     def __init__(self, required: list[str] | tuple[str, ...] | None = None) -> None:
         if required is None:

@@ -1,4 +1,5 @@
-"""The fault classes of the reliability contract (README), each with a test that fails when its promise breaks.
+"""The fault classes of the reliability contract (README), each with a test that fails
+when its promise breaks.
 
 1 resume by content, 2 sweeps that survive their jobs (the SIGKILL fault injection is in
 tests/test_sweeps.py), 3 refusal before running, 4 divergence guard, 5 signals,
