@@ -44,7 +44,8 @@ class Terminated(Exception):
 @dataclass(frozen=True)
 class RunResult:
     """Outcome of :func:`run`: final state and reason, steps done, wall time (s),
-    the log's path, the last metrics and the wall time spent logging steps (s).
+    the log's path, the last metrics and the wall time spent logging steps (s: the sum
+    of the observers' ``seconds``, which the logger keeps).
     """
 
     state: str
@@ -266,8 +267,7 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest) -> RunResult:
             if not _disk_full(err):
                 raise
             disk_error = disk_error or err
-    logger = exp.observers.get("log")
-    log_s = float(getattr(logger, "seconds", 0.0))
+    log_s = sum(float(getattr(o, "seconds", 0.0)) for o in watching)
     if disk_error is not None:
         raise DiskFull(
             f"disk full while writing {out_dir / 'run.mcap'} at step {done} "
