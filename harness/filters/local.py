@@ -238,12 +238,7 @@ class WeightedPoisson:
         self._width = 2 * min(grid.nx, grid.ny)
         self.iterations = 0
         self.factorizations = 0
-        eig_x = _gradient_eigenvalues(grid.nx, grid.dx)
-        eig_y = _gradient_eigenvalues(grid.ny, grid.dy)
-        lam = eig_y[:, None] + eig_x[None, :]
-        inv = np.zeros_like(lam)
-        inv[lam > 1e-12 * lam.max()] = 1.0 / lam[lam > 1e-12 * lam.max()]
-        self._inv_laplacian = inv
+        self._inv_laplacian = laplacian_pinv_spectrum(grid)
 
     def _laplacian_pinv(self, r: np.ndarray) -> np.ndarray:
         g = self.grid
@@ -556,6 +551,21 @@ def _gradient_eigenvalues(n: int, h: float) -> np.ndarray:
 
     basis = sfft.idct(np.eye(n), type=2, norm="ortho", axis=0)
     return np.sum((_gradient_1d(n, h) @ basis) ** 2, axis=0)
+
+
+def laplacian_pinv_spectrum(grid: Grid) -> np.ndarray:
+    """The pseudo-inverse of ``G^T G`` in the orthonormal DCT-II basis, ``(ny, nx)``:
+    ``1 / lambda`` on the modes with ``lambda > 1e-12 max lambda`` and 0 on the
+    constants (``lambda = |D_y phi_b|^2 + |D_x phi_a|^2``, :func:`_gradient_eigenvalues`
+    per axis). Shared by :class:`WeightedPoisson` and the robots' batched solve
+    (:class:`harness.decentralised.poisson.BatchedPoisson`).
+    """
+    eig_x = _gradient_eigenvalues(grid.nx, grid.dx)
+    eig_y = _gradient_eigenvalues(grid.ny, grid.dy)
+    lam = eig_y[:, None] + eig_x[None, :]
+    inv = np.zeros_like(lam)
+    inv[lam > 1e-12 * lam.max()] = 1.0 / lam[lam > 1e-12 * lam.max()]
+    return inv
 
 
 _PCG_MAXITER = 200
