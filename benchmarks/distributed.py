@@ -30,21 +30,16 @@ import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from harness.agents import Swarm
 from harness.control import PaperControl, paper_law
+from harness.decentralised import RobotEstimators, algebraic_connectivity, message_counts
+from harness.decentralised.density import jacobi_sweeps, stencil_coefficients
+from harness.decentralised.graph import n_components
 from harness.densities import DEFAULT_TARGET, Box, Target
-from harness.distributed import (
-    RobotEstimators,
-    algebraic_connectivity,
-    decentralised_velocities,
-    euler_maruyama_robots,
-    jacobi_sweeps,
-    message_counts,
-    n_components,
-    stencil_coefficients,
-)
 from harness.filters.common import FilterSettings
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.robot_law import own_velocities
 
 SIGMA, ALPHA, H, DT = 5e-5, 0.003, 0.04, 0.01
 TARGET_MS = 20.0
@@ -98,7 +93,8 @@ def run(
     rng = np.random.default_rng(0)
     target_density = Target.from_density(g, DEFAULT_TARGET)
     fp = FokkerPlanck(g, SIGMA)
-    pos = Box().sample(n_robots, g, rng)
+    swarm = Swarm(g, Box().sample(n_robots, g, rng), SIGMA)
+    pos = swarm.positions  # moved in place by the robot step
     est = RobotEstimators(
         g, DT, n_robots, H, FilterSettings(), radius=radius, k_nearest=k, gradient=gradient,
         initial_rounds=initial_rounds,
@@ -121,9 +117,9 @@ def run(
         sweeps.append(jacobi_sweeps(stencil_coefficients(g, a, DT)[0]))
         v = clock(
             "per-robot law",
-            lambda e=e: decentralised_velocities(g, law, e.p_hat, pos, e.q_hat),
+            lambda e=e: own_velocities(g, law, e.p_hat, pos, e.q_hat),
         )
-        clock("robot step", lambda v=v: euler_maruyama_robots(g, pos, v, SIGMA, DT, rng))
+        clock("robot step", lambda v=v: swarm.step_robots(v, DT, rng))
         w = clock("graph", lambda: est._graph(pos))
         z = clock("consensus", lambda w=w: est.consensus.step(pos, w))
         y, y_g = est._split(z)
@@ -133,7 +129,8 @@ def run(
         clock("(algebraic connectivity, logged)", lambda e=e: algebraic_connectivity(e.adjacency))
     graph = f"radius {radius}" if radius is not None else f"k = {k}"
     counts = message_counts(est.adjacency, est.consensus.rounds, est.consensus.fields * g.size)
-    extra = f", PCG iterations {est.filters.poisson.iterations}" if gradient == "filter" else ""
+    tracked = est.filters.gradient.tracks_kernel_gradient  # the gradient filter's solves
+    extra = f", PCG iterations {est.filters.poisson.iterations}" if tracked else ""
     print(
         f"  N = {n_robots}, gradient = {gradient}, {graph}: mean degree "
         f"{counts['mean_degree']:.1f}, {counts['messages']:.1f} messages "

@@ -1,5 +1,6 @@
 """Estimators (config group ``estimator``): ``filters`` | ``kde`` | ``exact`` | ``smoothed`` |
-``injected`` | ``distributed``.
+``injected`` | ``distributed`` (the decentralised loop's,
+:class:`harness.decentralised.DistributedEstimator`).
 
 Each step the loop hands an estimator a :class:`~harness.records.StepInput` (the
 plant's measurement, the velocity applied over the last interval and its
@@ -20,26 +21,16 @@ from harness.components import (
     Incompatible,
     MemoryEstimate,
     ParameterError,
-    Plant,
     default_memory,
     flag,
     integer,
     number,
-    require,
-)
-from harness.distributed import (
-    DistributedEstimate,
-    RobotEstimators,
-    algebraic_connectivity,
-    estimate_spread,
-    message_counts,
-    n_components,
 )
 from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.engines import FilterEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.records import Estimate, RobotEstimates, StepInput
+from harness.records import Estimate, StepInput
 from harness.smoothing import Smoother
 
 
@@ -276,197 +267,3 @@ class FilterEstimator:
         assert inp.v_applied is not None
         assert inp.p_kde is not None and inp.grad_kde is not None
         return self._estimate(*self.engine.step(inp.p_kde, inp.grad_kde, inp.v_applied, inp.a))
-
-
-class DistributedEstimator:
-    """Each robot estimates the swarm's density from its own kernel and its neighbours
-    (``estimator=distributed``), and moves on its own estimate.
-
-    Per step (:mod:`harness.distributed`, where the equations are derived): the
-    communication graph of the robots' positions (radius ``r`` or ``k`` nearest), the
-    dynamic average consensus (eq. ``DAC``: ``rounds`` rounds of ``W = I - eps L``
-    per step, ``initial_rounds`` at ``t = 0``) tracking the mean of the robots'
-    kernels, and per robot the fast density filter (:mod:`harness.filters.local`) on
-    its tracked observation, with the gradient either the grid gradient of the robot's
-    own density estimate (``gradient: grid``) or its own gradient filter (``gradient:
-    filter``, slow: one weighted Poisson solve per robot and step). The loop then moves
-    robot ``i`` with the law evaluated from its own estimates at its own position
-    (:func:`harness.distributed.decentralised_velocities`, the control's ``at_cells``).
-
-    The centralised local filters run alongside, with the same parameters, on the exact
-    KDE of the robots (the mean of the robots' own kernels, which consensus distributes;
-    the plant's KDE may be binned), as the reference: their estimate is logged and
-    measured against, never used for control. With a complete graph (``radius >=
-    sqrt(2)`` times the domain side) one round is exact consensus and every robot's
-    estimate is the centralised one (tested to 1e-10).
-
-    What the estimate returned to the loop holds: ``p_hat``, ``q_hat`` the robots' mean
-    estimate (the field the log shows, and the velocity field whose Fokker-Planck matrix
-    is the shared transport model of every robot's filter and of the reference); the
-    traces of the reference; and :class:`~harness.records.RobotEstimates`.
-
-    The plant's ``p_true`` stays the centralised loop's ``N -> infinity`` limit (the
-    decentralised loop's own limit depends on the graph and is not modelled).
-
-    The robots' filters keep every grid mode (no band limit; a per-robot DCT would
-    cost ``O(N M log M)`` per step), and so does the reference, so that the two differ
-    only by what consensus does; the step bound is therefore the grid's
-    (:meth:`resolution`).
-
-    Args:
-        grid, model: Run-time arguments.
-        robots: ``N`` (``agents.n``): every robot knows the swarm size (it sets the
-            kernel weights' noise constants ``k``, ``k_g``).
-        bandwidth: Kernel bandwidth ``h`` (length, ``kde.bandwidth``).
-        dt: Step (s).
-        mirror: Must be true: the robots' kernels carry the wall images.
-        process_noise, r_scale, r_floor, initial_variance: As
-            :class:`harness.filters.common.FilterSettings` (``filter.*``).
-        radius: Communication radius (length), or None with ``k_nearest``.
-        k_nearest: Neighbours per robot (symmetrised), or None with ``radius``.
-        rounds: Consensus rounds per step (``>= 1``).
-        gain: Consensus gain factor in ``(0, 1]``: ``eps = gain / (1 + d_max)``.
-        gradient: ``grid`` or ``filter`` (see above).
-        initial_rounds: Consensus rounds at ``t = 0`` (``>= 0``).
-        robot: Index of the robot whose estimate is logged (``/fields/p_hat_robot``).
-        connectivity_every: Steps between evaluations of the graph's algebraic
-            connectivity (an eigenvalue problem of ``N`` unknowns; held in between).
-    """
-
-    uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
-    GRADIENTS = ("grid", "filter")
-
-    def __init__(
-        self,
-        grid: Grid,
-        model: FokkerPlanck,
-        robots: int,
-        bandwidth: float,
-        dt: float,
-        mirror: bool = True,
-        process_noise: float = 0.1,
-        r_scale: float = 1.0,
-        r_floor: float = 0.05,
-        initial_variance: float = 10.0,
-        radius: float | None = 0.1,
-        k_nearest: int | None = None,
-        rounds: int = 1,
-        gain: float = 1.0,
-        gradient: str = "grid",
-        initial_rounds: int = 30,
-        robot: int = 0,
-        connectivity_every: int = 100,
-    ) -> None:
-        self.grid = grid
-        self.n_robots = integer("robots", robots, 1)
-        h = number("bandwidth", bandwidth, 0.0, strict=True)
-        dt = number("dt", dt, 0.0, strict=True)
-        wall_images = "true (the robots' kernels carry the wall images)"
-        require(flag("mirror", mirror), "mirror", mirror, wall_images)
-        settings = FilterSettings(
-            process_noise=number("process_noise", process_noise, 0.0),
-            r_scale=number("r_scale", r_scale, 0.0, strict=True),
-            r_floor=number("r_floor", r_floor, 0.0, strict=True),
-            initial_variance=number("initial_variance", initial_variance, 0.0, strict=True),
-            band_limit=np.inf,
-        )
-        require((radius is None) != (k_nearest is None), "radius", radius,
-                "a length >= 0, or null with k_nearest set (exactly one of the two)")  # fmt: skip
-        if radius is not None:
-            radius = number("radius", radius, 0.0)
-        if k_nearest is not None:
-            k_nearest = integer("k_nearest", k_nearest, 0)
-        rounds = integer("rounds", rounds, 1)
-        gain = number("gain", gain, 0.0, strict=True)
-        require(gain <= 1.0, "gain", gain, "a number in (0, 1]")
-        require(gradient in self.GRADIENTS, "gradient", gradient, "one of grid, filter")
-        initial_rounds = integer("initial_rounds", initial_rounds, 0)
-        self.robot = integer("robot", robot, 0)
-        require(self.robot < self.n_robots, "robot", robot, f"an index below robots = {robots}")
-        self.connectivity_every = integer("connectivity_every", connectivity_every, 1)
-        self.network = RobotEstimators(
-            grid, dt, self.n_robots, h, settings, radius=radius, k_nearest=k_nearest,
-            rounds=rounds, gain=gain, gradient=gradient, initial_rounds=initial_rounds,
-        )  # fmt: skip
-        measurement = MeasurementModel(self.n_robots, h, settings)
-        self.central = FilterEngine.named("local")(grid, model.sigma, dt, measurement)
-        self._steps = 0
-        self._connectivity = float("nan")
-
-    def resolution(self, measured: float | None) -> float | None:
-        """None (the grid's): the robots' filters keep every grid mode."""
-        return None
-
-    @classmethod
-    def memory_estimate(cls, grid: Grid, robots: int = 1, **params: object) -> MemoryEstimate:
-        """Per robot: consensus state and buffer, kernel factors, the filters' states
-        and variances (with ``gradient: filter`` three more fields), about ``8 (4 + 3 +
-        (4 if filter)) M`` bytes, plus the grid arrays; the graph is ``O(N deg)``.
-        """
-        n = robots if isinstance(robots, int) and robots > 0 else 1
-        fields = 11 if params.get("gradient") == "filter" else 7
-        per_robot = 8 * fields * grid.size + 8 * (grid.nx + grid.ny) * 4
-        return MemoryEstimate(default_memory(grid).nbytes + n * per_robot, "robots")
-
-    def _estimate(self, est: DistributedEstimate, p_central: np.ndarray) -> Estimate:
-        g = self.grid
-        adj = est.adjacency
-        if self._steps % self.connectivity_every == 0:
-            self._connectivity = algebraic_connectivity(adj)
-        self._steps += 1
-        counts = message_counts(adj, self.network.consensus.rounds,
-                                self.network.consensus.fields * g.size)  # fmt: skip
-        spread, gap = estimate_spread(g, est.p_hat, p_central)
-        network = {
-            "consensus_l2": spread,
-            "central_gap_l2": gap,
-            "messages": counts["messages"],
-            "mean_degree": counts["mean_degree"],
-            "components": float(n_components(adj)),
-            "algebraic_connectivity": self._connectivity,
-        }
-        p_mean = est.p_hat.mean(axis=0).reshape(g.shape)
-        if est.q_hat is None:
-            q_mean = g.gradient(p_mean)  # G is linear: the mean of G p_hat_i
-        else:
-            q_mean = est.q_hat.mean(axis=0).reshape(2, *g.shape)
-        fields = {"p_hat_central": p_central, "p_hat_robot": est.p_hat[self.robot].reshape(g.shape)}
-        return Estimate(
-            p_mean, q_mean, *self.central.traces,
-            robots=RobotEstimates(est.p_hat, est.q_hat), fields=fields, metrics=network,
-        )  # fmt: skip
-
-    def check(self, plant: Plant, control: Control, **parts: object) -> None:
-        """Every robot estimates and moves on its own: refuse a plant without robots and
-        a law that does not move each robot by its own estimate.
-        """
-        if not plant.has_robots:
-            raise Incompatible(
-                "plant", type(plant).__name__,
-                "a plant with robots (plant=agents): every robot of estimator=distributed "
-                "estimates and moves on its own",
-            )  # fmt: skip
-        if not getattr(control, "own_estimates", False):
-            raise Incompatible(
-                "control", type(control).__name__,
-                "a law that moves each robot by the law of its own estimate (a FieldLaw "
-                "with its own at_cells, harness.control) for estimator=distributed",
-            )  # fmt: skip
-
-    def initialize(self, inp: StepInput) -> Estimate:
-        """The graph and consensus at the first positions; every filter's start."""
-        if inp.positions is None:
-            raise ValueError("estimator=distributed needs robots (plant=agents)")
-        robots = self.network.initialize(inp.positions)
-        p_central, _ = self.central.initialize(*self.network.consensus.kde())
-        return self._estimate(robots, p_central)
-
-    def step(self, inp: StepInput) -> Estimate:
-        """New graph, consensus, every robot's filter step under the shared model
-        ``A`` (of the robots' mean estimate's field), and the reference's step.
-        """
-        assert inp.positions is not None and inp.a is not None and inp.v_applied is not None
-        robots = self.network.step(inp.positions, inp.a)
-        p_kde, grad_kde = self.network.consensus.kde()  # the kernels consensus just used
-        p_central, _ = self.central.step(p_kde, grad_kde, inp.v_applied, inp.a)
-        return self._estimate(robots, p_central)

@@ -4,10 +4,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.distance import cdist
 
-from harness.agents import interpolate
+from harness.agents import Swarm, interpolate
 from harness.control import HeatControl, PaperControl, paper_law
-from harness.densities import DEFAULT_TARGET, Box, Target
-from harness.distributed import (
+from harness.decentralised import (
     DynamicAverageConsensus,
     RobotEstimators,
     RobotFilters,
@@ -16,20 +15,19 @@ from harness.distributed import (
     communication_graph,
     consensus_l2,
     consensus_weights,
-    decentralised_velocities,
-    decentralised_velocities_reference,
-    density_filter_reference,
-    estimate_spread,
-    euler_maruyama_robots,
     message_counts,
-    n_components,
-    robot_kernels,
 )
+from harness.decentralised.density import density_filter_reference
+from harness.decentralised.graph import n_components
+from harness.decentralised.metrics import estimate_spread
+from harness.decentralised.robot_kde import robot_kernels
+from harness.densities import DEFAULT_TARGET, Box, Target
 from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.local import LocalFilters
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE
+from harness.robot_law import own_velocities, own_velocities_reference
 from harness.velocity import VelocityField
 
 H = 0.04
@@ -207,7 +205,7 @@ def test_vectorised_filters_equal_one_local_filter_per_robot(rng):
             p_i, q_i = f.step(y[i].reshape(g.shape), y_g[i].reshape(2, *g.shape), v, a)
             np.testing.assert_allclose(batch.x[i], p_i.ravel(), atol=1e-11 * abs(p_i).max())
             np.testing.assert_allclose(batch.d[i], f.d, rtol=1e-11)
-            np.testing.assert_allclose(batch.c_g[i], f.c_g, rtol=1e-11)
+            np.testing.assert_allclose(batch.gradient.c_g[i], f.c_g, rtol=1e-11)
             np.testing.assert_allclose(batch.q_hat[i], q_i.ravel(), atol=1e-9 * abs(q_i).max())
 
 
@@ -216,7 +214,7 @@ def test_batched_poisson_matches_sparse_lu_per_robot_and_refuses_to_stop_early(r
     rectangular grid) equals a sparse LU of its own operator with cell 0 pinned,
     shifted to zero mean; the Laplacian pseudo-inverse equals the dense one; too few
     iterations raise instead of returning an unconverged update."""
-    from harness.distributed import BatchedPoisson
+    from harness.decentralised.poisson import BatchedPoisson
     from harness.fokker_planck import NumericalError
 
     g = Grid(14, 11, 0.0, 1.2, 0.0, 1.0)
@@ -258,6 +256,8 @@ def test_complete_graph_equals_the_centralised_filter(gradient):
     g = Grid.square(16)
     n, dt, alpha = 60, 0.01, 0.003
     target, pos = _swarm_and_velocity(g, rng, n)
+    swarm = Swarm(g, pos, SIGMA)  # the robots' step, each robot with its own velocity
+    pos = swarm.positions
     # the per-robot filters do not carry the band limit yet: the centralised reference is
     # the same local filter without it (every cosine mode kept)
     settings = FilterSettings(band_limit=np.inf)
@@ -285,17 +285,17 @@ def test_complete_graph_equals_the_centralised_filter(gradient):
         a_t = alpha * (1.0 + 10.0 * np.sin(0.3 * step) ** 2)
         v_field = paper_law(p_c, q_c, target, a_t, SIGMA)
         law = PaperControl(target, a_t, SIGMA).at_cells
-        v_robots = decentralised_velocities(g, law, e.p_hat, pos, q_robot)
+        v_robots = own_velocities(g, law, e.p_hat, pos, q_robot)
         expected = interpolate(g, v_field.centres, pos)
         np.testing.assert_allclose(v_robots, expected, atol=1e-9 * abs(expected).max())
-        pos = euler_maruyama_robots(g, pos, v_robots, SIGMA, dt, rng)
+        pos = swarm.step_robots(v_robots, dt, rng)
         a = fp.matrix(v_field)
         e = est.step(pos, a)
         central.step(*kde.exact(pos), v_field, a)
     assert consensus_l2(g, e.p_hat) < 1e-12
 
 
-def test_decentralised_velocities_match_the_per_robot_field(rng, grid30, target30):
+def test_own_velocities_match_the_per_robot_field(rng, grid30, target30):
     n = 40
     pos = rng.random((2, n))
     pos[:, :4] = [[0.0, 1.0, 0.01, 0.995], [0.0, 1.0, 0.99, 0.003]]  # near the walls
@@ -309,8 +309,8 @@ def test_decentralised_velocities_match_the_per_robot_field(rng, grid30, target3
     ]
     for control in controls:
         for q in (None, q_hat):
-            fast = decentralised_velocities(grid30, control.at_cells, p_hat, pos, q)
-            ref = decentralised_velocities_reference(grid30, control, p_hat, pos, q)
+            fast = own_velocities(grid30, control.at_cells, p_hat, pos, q)
+            ref = own_velocities_reference(grid30, control.field, p_hat, pos, q)
             np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-15)
 
 
@@ -335,6 +335,8 @@ def _iss_gap(delta: float, settings: FilterSettings) -> float:
     g = Grid.square(16)
     n, dt = 500, 0.01
     target, pos = _swarm_and_velocity(g, rng, n)
+    swarm = Swarm(g, pos, SIGMA)  # the robots' step, each robot with its own velocity
+    pos = swarm.positions
     kde = KDE(g, H, method="exact")
     model = MeasurementModel(n, H, settings)
     central = LocalFilters(g, SIGMA, dt, model)
@@ -358,7 +360,7 @@ def _iss_gap(delta: float, settings: FilterSettings) -> float:
     for t in range(1, 80):
         p_c, q_c = central.estimates
         v = paper_law(p_c, q_c, target, 0.01, SIGMA)
-        pos = euler_maruyama_robots(g, pos, interpolate(g, v.centres, pos), SIGMA, dt, rng)
+        pos = swarm.step_robots(interpolate(g, v.centres, pos), dt, rng)
         a = fp.matrix(v)
         p, gr = kde.exact(pos)
         central.step(p, gr, v, a)
@@ -400,7 +402,7 @@ def test_consensus_weights_are_doubly_stochastic_and_nonnegative(rng):
 
 
 def test_row_solver_matches_superlu(rng):
-    from harness.distributed import RowSolver
+    from harness.decentralised.row_solver import RowSolver
 
     g = Grid(9, 8)
     a = FokkerPlanck(g, 1e-3).matrix(VelocityField.from_centres(rng.normal(size=(2, *g.shape))))
@@ -501,7 +503,7 @@ def test_mixing_by_neighbour_sums_equals_the_sparse_product(rng, radius):
 def test_compiled_kernel_factors_equal_the_kde_kernel(rng, shape, h):
     """Products of exponentials (two per robot, axis and image) against
     :func:`harness.kde.kernel_1d` (one exponential per value), robots on the walls too."""
-    from harness.distributed import kernel_factors
+    from harness.decentralised.robot_kde import kernel_factors
     from harness.kde import kernel_1d
 
     g = Grid(*shape)

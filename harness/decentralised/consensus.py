@@ -1,0 +1,428 @@
+"""Dynamic average consensus: every robot tracks the swarm's KDE from its own kernel.
+
+The KDE is the mean of the robots' kernels ``phi_i`` (:mod:`harness.decentralised.robot_kde`),
+so each robot can track it from its own kernel and messages from its neighbours in the
+communication graph (:mod:`harness.decentralised.graph`: adjacency ``A``, Laplacian ``L``,
+eigenvalues ``0 = lambda_1 <= lambda_2 <= ... <= lambda_N``); Zheng and Lin, arXiv
+2009.05366 / 2106.05318.
+
+Dynamic average consensus (first-order form). Each robot keeps ``z_i`` (``F`` fields of
+``M`` cells: its kernel, and with the per-robot gradient filter also the kernel's two
+analytic derivatives). With ``W_t = I - eps_t L_t`` and ``m`` rounds per step,
+
+    z_i(0)     = [W_0^{m_0} phi(0)]_i,
+    z(t + 1)   = W_{t+1}^m ( z(t) + phi(t + 1) - phi(t) )                          (DAC)
+
+(rows are robots; ``phi(t)`` the ``N x FM`` matrix of the robots' kernels at ``X(t)``;
+``m_0`` the ``initial_rounds``, by default ``m``: with ``m_0 >> 1`` the robots agree
+before they start moving). Robot ``i`` needs ``z_j`` of its neighbours once per round:
+one message of ``F M`` floats per neighbour per round.
+
+*Computing* ``W z``. All off-diagonal weights equal ``eps``, so ``(W z)_i = w_ii z_i +
+eps S_i`` with the neighbour sum ``S_i``; visiting the robots along a Hilbert curve
+(:func:`harness.decentralised.graph.spatial_order`), consecutive robots have nearly the
+same neighbours and ``S_i`` is the preceding robot's sum corrected by the symmetric
+difference of the two neighbourhoods (:func:`_mix_uniform`, restarted every 64 robots):
+about ``4 r delta`` times the robot density row operations instead of ``deg_i``
+(``delta`` the step along the curve).
+
+*Invariant.* ``L`` is symmetric with zero row and column sums, so ``1^T W = 1^T`` for
+every graph and gain: ``1^T z(t + 1) = 1^T z(t) + 1^T phi(t + 1) - 1^T phi(t)``, and by
+induction from ``1^T z(0) = 1^T phi(0)``,
+
+    (1/N) sum_i z_i(t) = (1/N) sum_i phi_i(t) = p_KDE(t)     at every step, exactly,
+
+whatever the graph does (it may change, disconnect, reconnect). The robots' mean
+observation is the centralised one; consensus only distributes it.
+
+*Error dynamics.* Let ``Pi = I - 1 1^T / N`` and ``e = Pi z`` the disagreement
+(``z_i - p_KDE``). ``Pi`` commutes with ``W`` (both are polynomials in symmetric,
+constant-preserving operators), so
+
+    e(t + 1) = W^m ( e(t) + Pi (phi(t + 1) - phi(t)) ),
+    ||e(t + 1)|| <= rho^m ( ||e(t)|| + ||Pi Delta phi|| ),
+    rho = max(|1 - eps lambda_2|, |1 - eps lambda_N|)                (spectral radius on 1^perp).
+
+On a fixed connected graph with a static swarm the error decays geometrically at the
+rate ``rho^m`` per step, which is ``(1 - eps lambda_2)^m`` whenever ``eps (lambda_2 +
+lambda_N) <= 2`` (always true for the default gain below when the graph is not
+bipartite-like; the test uses a ring and checks both). With moving robots the error is
+input-to-state stable with respect to the kernels' per-step change: asymptotically
+``||e|| <= rho^m / (1 - rho^m) sup ||Pi Delta phi||``. Robots move ``~ 1e-3`` per step
+against a bandwidth ``h = 0.04``, so ``Delta phi`` is small and one round per step
+already tracks; the disconnected case (``lambda_2 = 0``) keeps the component averages
+instead (each component tracks the mean over its members).
+
+*Gain.* ``eps = gain / (1 + d_max)`` with ``d_max`` the largest degree of the current
+graph and ``0 < gain <= 1`` (default 1). Then every entry of ``W`` is ``>= 0`` (``1 - eps
+d_i >= 1 / (1 + d_max)``), ``W`` is doubly stochastic, and Gershgorin (``lambda_N <= 2
+d_max``) gives ``|1 - eps lambda_N| < 1``: stable on every graph. On the complete graph
+``eps = 1/N`` and ``W = 1 1^T / N``: one round is exact consensus, which the test of
+equality with the centralised filter uses. A robot with no neighbours has ``W_ii = 1``
+and tracks its own kernel.
+
+*Why first order, not proportional-integral.* The PI form (Freeman, Yang and Lynch
+2006) tolerates arbitrary initial states and robots joining or leaving, at the price of
+a second state per robot (twice the memory and the messages) and a slower, oscillatory
+transient. Here every robot starts with ``z_i(0) = phi_i(0)`` (it knows its own
+position) and the swarm is fixed, so the first-order form keeps the invariant exactly
+and its error is the ISS bound above.
+
+Messages. A *message* is one vector of ``F M`` float64 values sent by one robot to one
+neighbour in one consensus round. Per robot per step that is ``m deg_i`` messages, i.e.
+``m deg_i F M`` floats or ``8 m deg_i F M`` bytes; :func:`message_counts` reports the
+mean over robots (with a broadcast medium one transmission per round would do).
+
+The compiled kernels state their plain numpy equivalents in their docstrings; tests
+compare.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+from harness.decentralised.graph import canonical_csr, laplacian, spatial_order
+from harness.decentralised.robot_kde import kernel_factors
+from harness.grid import Grid
+
+
+@numba.njit(cache=True, nogil=True)
+def _weights_csr(indptr, indices, eps):  # pragma: no cover - compiled
+    """``W = I - eps L`` for a 0/1 adjacency in CSR (sorted rows): each row gets its
+    diagonal ``1 - eps deg_i`` inserted in order; off-diagonal entries are ``eps``.
+    """
+    n = indptr.size - 1
+    out_ptr = indptr + np.arange(n + 1)
+    out_idx = np.empty(out_ptr[n], dtype=np.int32)
+    out_val = np.full(out_ptr[n], eps)
+    for i in range(n):
+        pos = out_ptr[i]
+        placed = False
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            if not placed and j > i:
+                out_idx[pos] = i
+                out_val[pos] = 1.0 - eps * (indptr[i + 1] - indptr[i])
+                pos += 1
+                placed = True
+            out_idx[pos] = j
+            pos += 1
+        if not placed:
+            out_idx[pos] = i
+            out_val[pos] = 1.0 - eps * (indptr[i + 1] - indptr[i])
+    return out_ptr, out_idx, out_val
+
+
+def consensus_weights(adj: sp.csr_matrix, gain: float = 1.0) -> tuple[sp.csr_matrix, float]:
+    """``W = I - eps L`` with ``eps = gain / (1 + d_max)`` (*Gain* in the module docstring).
+
+    Compiled (:func:`_weights_csr`) for a canonical 0/1 adjacency, scipy otherwise.
+
+    Returns:
+        ``(W, eps)``; ``W`` is symmetric, doubly stochastic and non-negative for
+        ``0 < gain <= 1``; its off-diagonal entries all equal ``eps``.
+    """
+    if not 0 < gain <= 1:
+        raise ValueError(f"consensus gain must be in (0, 1], got {gain}")
+    n = adj.shape[0]
+    canonical = adj.format == "csr" and adj.has_canonical_format and bool(np.all(adj.data == 1.0))
+    deg = np.diff(adj.indptr) if canonical else np.asarray(adj.sum(axis=1)).ravel()
+    eps = float(gain / (1.0 + (deg.max() if deg.size else 0.0)))
+    if canonical:
+        indptr, indices, data = _weights_csr(adj.indptr, adj.indices, eps)
+        return canonical_csr(indptr, indices, data, n), eps
+    w = (sp.identity(n, format="csr") - eps * laplacian(adj)).tocsr()
+    w.sort_indices()
+    return w, eps
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _spmm(indptr, indices, data, z, out):  # pragma: no cover - compiled
+    """``out = W z`` for CSR ``W`` and dense ``z`` ``(N, F)``: rows in parallel, each
+    row's sum in CSR order (deterministic for any thread count).
+    """
+    n, f = z.shape
+    for i in numba.prange(n):
+        for c in range(f):
+            out[i, c] = 0.0
+        for k in range(indptr[i], indptr[i + 1]):
+            j = indices[k]
+            w = data[k]
+            for c in range(f):
+                out[i, c] += w * z[j, c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _uniform_offdiagonal(indptr, indices, data):  # pragma: no cover - compiled
+    """The common value of all off-diagonal entries of a CSR matrix, or NaN if they
+    differ (0 when there are none).
+    """
+    val = np.nan
+    for i in range(indptr.size - 1):
+        for k in range(indptr[i], indptr[i + 1]):
+            if indices[k] != i:
+                if val != val:
+                    val = data[k]
+                elif data[k] != val:
+                    return np.nan
+    return 0.0 if val != val else val
+
+
+@numba.njit(cache=True, nogil=True)
+def _symmetric_difference(indices, a0, a1, b0, b1, i, prev, ops, pos, limit):  # pragma: no cover
+    """Walk the sorted rows ``a0:a1`` (robot ``i``) and ``b0:b1`` (robot ``prev``) of a
+    matrix with diagonal entries: the open neighbourhoods ``N(i) = row(i) - {i}``,
+    ``N(prev) = row(prev) - {prev}``. Records their symmetric difference in ``ops``
+    from ``pos`` on (``j + 1`` for ``j`` in ``N(i) - N(prev)``, ``-(j + 1)`` for ``j`` in
+    ``N(prev) - N(i)``) and returns its size, stopping at ``limit``.
+    """
+    big = np.iinfo(np.int64).max
+    ka, kb, cnt = a0, b0, 0
+    while (ka < a1 or kb < b1) and cnt < limit:
+        ja = indices[ka] if ka < a1 else big
+        jb = indices[kb] if kb < b1 else big
+        op = 0
+        if ja == jb:  # in both rows: differs only for i itself and prev itself
+            if ja == i:
+                op = -(ja + 1)
+            elif ja == prev:
+                op = ja + 1
+            ka += 1
+            kb += 1
+        elif ja < jb:  # only in row(i)
+            if ja != i:
+                op = ja + 1
+            ka += 1
+        else:  # only in row(prev)
+            if jb != prev:
+                op = -(jb + 1)
+            kb += 1
+        if op != 0:
+            ops[pos + cnt] = op
+            cnt += 1
+    return cnt
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_rows(z, idx, k0, k1, sign, s):  # pragma: no cover - compiled
+    """``s += sign sum_{k0 <= k < k1} z[idx[k]]``, four rows per pass over ``s``."""
+    f = s.size
+    k = k0
+    while k + 4 <= k1:
+        z1, z2, z3, z4 = z[idx[k]], z[idx[k + 1]], z[idx[k + 2]], z[idx[k + 3]]
+        for c in range(f):
+            s[c] += sign * ((z1[c] + z2[c]) + (z3[c] + z4[c]))
+        k += 4
+    while k < k1:
+        z1 = z[idx[k]]
+        for c in range(f):
+            s[c] += sign * z1[c]
+        k += 1
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _mix_uniform(indptr, indices, data, eps, order, chunk, z, out):  # pragma: no cover
+    """``out = W z`` for ``W`` whose off-diagonal entries all equal ``eps``:
+    ``out_i = w_ii z_i + eps S_i`` with the neighbour sum ``S_i = sum_{j ~ i} z_j``.
+
+    Robots are visited in ``order`` (a space-filling curve) in chunks of ``chunk``; in a
+    chunk, ``S_i`` is updated from the previous robot's ``S`` by the symmetric
+    difference of their neighbourhoods (``S_i = S_prev + sum_{N(i) - N(prev)} z_j -
+    sum_{N(prev) - N(i)} z_j``) whenever that is shorter than ``N(i)``, and summed
+    directly otherwise; each chunk starts directly. Rows are added four at a time
+    (:func:`_add_rows`). Chunks are fixed, so the result does not depend on the number
+    of threads. Rows of ``W`` must be sorted and hold the diagonal.
+    """
+    n, f = z.shape
+    nch = (n + chunk - 1) // chunk
+    for ch in numba.prange(nch):
+        s = np.zeros(f)
+        ops = np.empty(n, dtype=np.int64)
+        plus = np.empty(n, dtype=np.int64)
+        minus = np.empty(n, dtype=np.int64)
+        prev = -1
+        for kk in range(ch * chunk, min(n, (ch + 1) * chunk)):
+            i = order[kk]
+            a0, a1 = indptr[i], indptr[i + 1]
+            diag = 0.0
+            deg = 0
+            for k in range(a0, a1):
+                if indices[k] == i:
+                    diag = data[k]
+                else:
+                    deg += 1
+            cnt = deg
+            if prev >= 0:
+                b0, b1 = indptr[prev], indptr[prev + 1]
+                cnt = _symmetric_difference(indices, a0, a1, b0, b1, i, prev, ops, 0, deg)
+            n_plus = n_minus = 0
+            if cnt >= deg:  # direct sum over N(i)
+                for c in range(f):
+                    s[c] = 0.0
+                for k in range(a0, a1):
+                    if indices[k] != i:
+                        plus[n_plus] = indices[k]
+                        n_plus += 1
+            else:
+                for k in range(cnt):
+                    if ops[k] > 0:
+                        plus[n_plus] = ops[k] - 1
+                        n_plus += 1
+                    else:
+                        minus[n_minus] = -ops[k] - 1
+                        n_minus += 1
+            _add_rows(z, plus, 0, n_plus, 1.0, s)
+            _add_rows(z, minus, 0, n_minus, -1.0, s)
+            zi, oi = z[i], out[i]
+            for c in range(f):
+                oi[c] = diag * zi[c] + eps * s[c]
+            prev = i
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _add_kernel_increment(z, ky, kx, ky_old, kx_old, sign_old):  # pragma: no cover
+    """``z[i] += outer(ky[i], kx[i]) + sign_old outer(ky_old[i], kx_old[i])`` (flattened
+    ``(ny, nx)``), i.e. ``z += phi(t+1) - phi(t)`` for ``sign_old = -1``.
+    """
+    n, ny = ky.shape
+    nx = kx.shape[1]
+    for i in numba.prange(n):
+        for j in range(ny):
+            a = ky[i, j]
+            b = sign_old * ky_old[i, j]
+            base = j * nx
+            for c in range(nx):
+                z[i, base + c] += a * kx[i, c] + b * kx_old[i, c]
+
+
+class DynamicAverageConsensus:
+    """First-order dynamic average consensus on the robots' kernels (eq. DAC in the
+    module docstring), state ``z`` of shape ``(N, F M)``.
+
+    Args:
+        grid: The grid.
+        bandwidth: Kernel bandwidth ``h`` (length).
+        gradient: Track the kernel's gradient as well (``F = 3``) or not (``F = 1``).
+        rounds: Consensus rounds per step ``m >= 1``.
+        gain: ``eps = gain / (1 + d_max)``, ``0 < gain <= 1``.
+        initial_rounds: Rounds ``m_0 >= 0`` at ``t = 0``, before the first estimate:
+            ``z(0) = W_0^{m_0} phi(0)`` (default ``m``). With one round per step each
+            robot's first estimate is nearly its own kernel; ``m_0`` rounds bring the
+            disagreement down by ``rho^{m_0}`` before the robots start moving.
+        chunk: Robots per chunk of the neighbour-sum product (:func:`_mix_uniform`).
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        bandwidth: float,
+        gradient: bool = False,
+        rounds: int = 1,
+        gain: float = 1.0,
+        initial_rounds: int | None = None,
+        chunk: int = 64,
+    ) -> None:
+        if rounds < 1:
+            raise ValueError(f"consensus rounds must be >= 1, got {rounds}")
+        initial_rounds = rounds if initial_rounds is None else int(initial_rounds)
+        if initial_rounds < 0:
+            raise ValueError(f"initial rounds must be >= 0, got {initial_rounds}")
+        self.grid, self.bandwidth, self.gradient = grid, bandwidth, gradient
+        self.rounds, self.gain = int(rounds), gain
+        self.initial_rounds, self.chunk = initial_rounds, int(chunk)
+        self.fields = 3 if gradient else 1
+        self.z: np.ndarray | None = None
+        self._buf: np.ndarray | None = None
+        self._factors: tuple[np.ndarray, ...] | None = None
+        self.eps = 0.0
+
+    def _increment(self, factors: tuple[np.ndarray, ...], old: tuple[np.ndarray, ...] | None):
+        assert self.z is not None
+        m = self.grid.size
+        kx, dkx, ky, dky = factors
+        parts = [(ky, kx)]
+        if self.gradient:
+            parts += [(ky, dkx), (dky, kx)]
+        olds = [(ky, kx)] * len(parts)  # unused values when old is None (sign 0)
+        if old is not None:
+            okx, odkx, oky, odky = old
+            olds = [(oky, okx)] + ([(oky, odkx), (odky, okx)] if self.gradient else [])
+        sign = -1.0 if old is not None else 0.0
+        for f, ((a, b), (oa, ob)) in enumerate(zip(parts, olds, strict=True)):
+            # a column block of z (strided rows): the kernel takes any layout
+            _add_kernel_increment(self.z[:, f * m : (f + 1) * m], a, b, oa, ob, sign)
+
+    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray) -> None:
+        """``z <- W^rounds z``: by neighbour sums along a space-filling curve
+        (:func:`_mix_uniform`) when ``W``'s off-diagonal entries are all equal (always
+        for :func:`consensus_weights`), by the general sparse product otherwise.
+        """
+        assert self.z is not None and self._buf is not None
+        if not w.has_sorted_indices:
+            w = w.copy()
+            w.sort_indices()
+        eps = _uniform_offdiagonal(w.indptr, w.indices, w.data)
+        order = spatial_order(positions) if np.isfinite(eps) else None
+        for _ in range(rounds):
+            if order is not None:
+                _mix_uniform(w.indptr, w.indices, w.data, eps, order, self.chunk, self.z, self._buf)
+            else:
+                _spmm(w.indptr, w.indices, w.data, self.z, self._buf)
+            self.z, self._buf = self._buf, self.z
+
+    def kde(self) -> tuple[np.ndarray, np.ndarray]:
+        """The exact KDE of the current positions, ``(p, grad p)`` of shapes ``(ny, nx)``
+        and ``(2, ny, nx)``: the mean of the robots' kernels, from the factors the last
+        step computed (:meth:`harness.kde.KDE.exact` without evaluating them again).
+        """
+        assert self._factors is not None, "call initialize first"
+        kx, dkx, ky, dky = self._factors
+        n = kx.shape[0]
+        return ky.T @ kx / n, np.stack([ky.T @ dkx / n, dky.T @ kx / n])
+
+    def initialize(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
+        """``z(0) = W^{m_0} phi(0)`` (``m_0`` initial rounds); returns ``z`` ``(N, F M)``."""
+        n = positions.shape[1]
+        self.z = np.zeros((n, self.fields * self.grid.size))
+        self._buf = np.empty_like(self.z)
+        self._factors = kernel_factors(self.grid, positions, self.bandwidth)
+        self._increment(self._factors, None)
+        self._mix(w, self.initial_rounds, positions)
+        return self.z
+
+    def step(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
+        """``z <- W^m (z + phi(t+1) - phi(t))``; returns ``z``."""
+        assert self.z is not None and self._factors is not None, "call initialize first"
+        factors = kernel_factors(self.grid, positions, self.bandwidth)
+        self._increment(factors, self._factors)
+        self._factors = factors
+        self._mix(w, self.rounds, positions)
+        return self.z
+
+    def reference_step(
+        self, z: np.ndarray, phi_new: np.ndarray, phi_old: np.ndarray, w: sp.csr_matrix
+    ) -> np.ndarray:
+        """Plain statement of :meth:`step`: ``W^m (z + phi_new - phi_old)`` (scipy)."""
+        out = z + phi_new - phi_old
+        for _ in range(self.rounds):
+            out = w @ out
+        return out
+
+
+def message_counts(adj: sp.csr_matrix, rounds: int, floats_per_message: int) -> dict[str, float]:
+    """Communication per robot per step (means over robots; see the module docstring).
+
+    Returns:
+        ``messages`` (messages / robot / step), ``floats`` (float64 values / robot /
+        step), ``bytes`` (bytes / robot / step) and ``mean_degree``.
+    """
+    deg = float(adj.nnz) / adj.shape[0]
+    msgs = rounds * deg
+    return {
+        "messages": msgs,
+        "floats": msgs * floats_per_message,
+        "bytes": 8.0 * msgs * floats_per_message,
+        "mean_degree": deg,
+    }

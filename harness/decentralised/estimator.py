@@ -1,0 +1,331 @@
+"""The decentralised loop's estimator: graph, consensus and per-robot filters assembled.
+
+:class:`RobotEstimators` runs the robots' side of a step (the communication graph at
+their positions, dynamic average consensus, every robot's filter);
+:class:`DistributedEstimator` is the harness's ``estimator=distributed``: the robots'
+estimates, the centralised reference filters beside them, and the network figures.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from harness.components import (
+    Control,
+    Incompatible,
+    MemoryEstimate,
+    Plant,
+    default_memory,
+    flag,
+    integer,
+    number,
+    require,
+)
+from harness.decentralised.consensus import DynamicAverageConsensus, consensus_weights
+from harness.decentralised.filters import RobotFilters
+from harness.decentralised.gradient import GRADIENTS, GridGradient
+from harness.decentralised.graph import algebraic_connectivity, communication_graph
+from harness.decentralised.metrics import network_figures
+from harness.filters.common import FilterSettings, MeasurementModel
+from harness.filters.engines import FilterEngine
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.records import Estimate, RobotEstimates, StepInput
+
+
+@dataclass(frozen=True)
+class DistributedEstimate:
+    """The robots' estimates after a step.
+
+    Attributes:
+        p_hat: ``(N, M)`` density estimates (1 / length^2).
+        q_hat: ``(N, 2M)`` gradient estimates (1 / length^3), or None (grid gradient,
+            computed on demand by :attr:`RobotFilters.q_hat`).
+        observation: ``(N, M)`` tracked observations ``z_i`` (density part).
+        adjacency: The step's communication graph.
+        eps: The step's consensus gain.
+    """
+
+    p_hat: np.ndarray
+    q_hat: np.ndarray | None
+    observation: np.ndarray
+    adjacency: sp.csr_matrix
+    eps: float
+
+
+class RobotEstimators:
+    """Graph + dynamic average consensus + per-robot fast filters.
+
+    Args:
+        grid: The grid.
+        dt: Step (s).
+        n_robots: ``N`` (each robot knows it; it sets ``k``, ``k_g``).
+        bandwidth: KDE bandwidth ``h`` (length).
+        settings: Filter settings.
+        radius: Communication radius (length), or
+        k_nearest: number of nearest neighbours (exactly one of the two).
+        rounds: Consensus rounds per step.
+        gain: Consensus gain factor in ``(0, 1]``.
+        gradient: ``"grid"`` or ``"filter"`` (:mod:`harness.decentralised.gradient`).
+        initial_rounds: Consensus rounds at ``t = 0`` before the first estimate
+            (default ``rounds``; see :class:`DynamicAverageConsensus`).
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        dt: float,
+        n_robots: int,
+        bandwidth: float,
+        settings: FilterSettings,
+        radius: float | None = None,
+        k_nearest: int | None = None,
+        rounds: int = 1,
+        gain: float = 1.0,
+        gradient: str = "grid",
+        initial_rounds: int | None = None,
+    ) -> None:
+        if (radius is None) == (k_nearest is None):
+            raise ValueError("give exactly one of radius and k_nearest")
+        self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
+        self.filters = RobotFilters(
+            grid, dt, MeasurementModel(n_robots, bandwidth, settings), gradient
+        )
+        self.consensus = DynamicAverageConsensus(
+            grid, bandwidth, gradient=self.filters.gradient.tracks_kernel_gradient,
+            rounds=rounds, gain=gain, initial_rounds=initial_rounds,
+        )  # fmt: skip
+        self.adjacency: sp.csr_matrix | None = None
+
+    def _graph(self, positions: np.ndarray) -> sp.csr_matrix:
+        self.adjacency = communication_graph(positions, self.radius, self.k_nearest)
+        w, self.consensus.eps = consensus_weights(self.adjacency, self.consensus.gain)
+        return w
+
+    def _split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        m = self.grid.size
+        return z[:, :m], (z[:, m:] if self.consensus.gradient else None)
+
+    def _estimate(self, y: np.ndarray) -> DistributedEstimate:
+        f = self.filters
+        assert f.x is not None and self.adjacency is not None
+        q = f.gradient.estimate(f.x)
+        return DistributedEstimate(f.x, q, y, self.adjacency, self.consensus.eps)
+
+    def initialize(self, positions: np.ndarray) -> DistributedEstimate:
+        """Graph, ``z(0)`` and the filters' start from it, at ``t = 0``."""
+        z = self.consensus.initialize(positions, self._graph(positions))
+        y, y_g = self._split(z)
+        self.filters.initialize(np.ascontiguousarray(y), y_g)
+        return self._estimate(y)
+
+    def step(self, positions: np.ndarray, a: sp.csr_matrix) -> DistributedEstimate:
+        """New graph at the new positions, consensus, then every robot's filter step
+        under the model ``A`` (the Fokker-Planck matrix of the last interval).
+        """
+        z = self.consensus.step(positions, self._graph(positions))
+        y, y_g = self._split(z)
+        self.filters.step(y, a, y_g)
+        return self._estimate(y)
+
+    def memory_bytes(self) -> int:
+        """Bytes held in per-robot arrays (consensus state and buffer, filter states)."""
+        arrays = [self.consensus.z, self.consensus._buf, self.filters.x, self.filters.d]
+        arrays += list(self.filters.gradient.arrays())
+        arrays += list(self.consensus._factors or ())
+        return int(sum(a.nbytes for a in arrays if a is not None))
+
+
+class DistributedEstimator:
+    """Each robot estimates the swarm's density from its own kernel and its neighbours
+    (``estimator=distributed``), and moves on its own estimate.
+
+    Per step (:class:`RobotEstimators`; the equations are derived in the modules of
+    :mod:`harness.decentralised`): the communication graph of the robots' positions
+    (radius ``r`` or ``k`` nearest, :mod:`~harness.decentralised.graph`), the dynamic
+    average consensus (eq. ``DAC``: ``rounds`` rounds of ``W = I - eps L`` per step,
+    ``initial_rounds`` at ``t = 0``, :mod:`~harness.decentralised.consensus`) tracking
+    the mean of the robots' kernels, and per robot the fast density filter
+    (:mod:`~harness.decentralised.filters`) on its tracked observation, with the
+    gradient either the grid gradient of the robot's own density estimate (``gradient:
+    grid``) or its own gradient filter (``gradient: filter``, slow: one weighted Poisson
+    solve per robot and step; :mod:`~harness.decentralised.gradient`). The control then
+    moves robot ``i`` by the law evaluated from its own estimates at its own position
+    (a field law's ``at_cells``, :func:`harness.robot_law.own_velocities`).
+
+    The centralised local filters run alongside, with the same parameters, on the exact
+    KDE of the robots (the mean of the robots' own kernels, which consensus distributes;
+    the plant's KDE may be binned), as the reference: their estimate is logged and
+    measured against, never used for control. With a complete graph (``radius >=
+    sqrt(2)`` times the domain side) one round is exact consensus and every robot's
+    estimate is the centralised one (tested to 1e-10).
+
+    What the estimate returned to the loop holds: ``p_hat``, ``q_hat`` the robots' mean
+    estimate (the field the log shows, and the velocity field whose Fokker-Planck matrix
+    is the shared transport model of every robot's filter and of the reference); the
+    traces of the reference; each robot's own estimate
+    (:class:`~harness.records.RobotEstimates`); the fields ``p_hat_central`` (the
+    reference's estimate) and ``p_hat_robot`` (robot ``robot``'s); and the network
+    metrics (:func:`~harness.decentralised.metrics.network_figures`).
+
+    The plant's ``p_true`` stays the centralised loop's ``N -> infinity`` limit (the
+    decentralised loop's own limit depends on the graph and is not modelled).
+
+    The robots' filters keep every grid mode (no band limit; a per-robot DCT would
+    cost ``O(N M log M)`` per step), and so does the reference, so that the two differ
+    only by what consensus does; the step bound is therefore the grid's
+    (:meth:`resolution`).
+
+    Args:
+        grid, model: Run-time arguments.
+        robots: ``N`` (``agents.n``): every robot knows the swarm size (it sets the
+            kernel weights' noise constants ``k``, ``k_g``).
+        bandwidth: Kernel bandwidth ``h`` (length, ``kde.bandwidth``).
+        dt: Step (s).
+        mirror: Must be true: the robots' kernels carry the wall images.
+        process_noise, r_scale, r_floor, initial_variance: As
+            :class:`harness.filters.common.FilterSettings` (``filter.*``).
+        radius: Communication radius (length), or None with ``k_nearest``.
+        k_nearest: Neighbours per robot (symmetrised), or None with ``radius``.
+        rounds: Consensus rounds per step (``>= 1``).
+        gain: Consensus gain factor in ``(0, 1]``: ``eps = gain / (1 + d_max)``.
+        gradient: ``grid`` or ``filter`` (see above).
+        initial_rounds: Consensus rounds at ``t = 0`` (``>= 0``).
+        robot: Index of the robot whose estimate is logged (``/fields/p_hat_robot``).
+        connectivity_every: Steps between evaluations of the graph's algebraic
+            connectivity (an eigenvalue problem of ``N`` unknowns; held in between).
+    """
+
+    uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
+
+    def __init__(
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        robots: int,
+        bandwidth: float,
+        dt: float,
+        mirror: bool = True,
+        process_noise: float = 0.1,
+        r_scale: float = 1.0,
+        r_floor: float = 0.05,
+        initial_variance: float = 10.0,
+        radius: float | None = 0.1,
+        k_nearest: int | None = None,
+        rounds: int = 1,
+        gain: float = 1.0,
+        gradient: str = "grid",
+        initial_rounds: int = 30,
+        robot: int = 0,
+        connectivity_every: int = 100,
+    ) -> None:
+        self.grid = grid
+        self.n_robots = integer("robots", robots, 1)
+        h = number("bandwidth", bandwidth, 0.0, strict=True)
+        dt = number("dt", dt, 0.0, strict=True)
+        wall_images = "true (the robots' kernels carry the wall images)"
+        require(flag("mirror", mirror), "mirror", mirror, wall_images)
+        settings = FilterSettings(
+            process_noise=number("process_noise", process_noise, 0.0),
+            r_scale=number("r_scale", r_scale, 0.0, strict=True),
+            r_floor=number("r_floor", r_floor, 0.0, strict=True),
+            initial_variance=number("initial_variance", initial_variance, 0.0, strict=True),
+            band_limit=np.inf,
+        )
+        require((radius is None) != (k_nearest is None), "radius", radius,
+                "a length >= 0, or null with k_nearest set (exactly one of the two)")  # fmt: skip
+        if radius is not None:
+            radius = number("radius", radius, 0.0)
+        if k_nearest is not None:
+            k_nearest = integer("k_nearest", k_nearest, 0)
+        rounds = integer("rounds", rounds, 1)
+        gain = number("gain", gain, 0.0, strict=True)
+        require(gain <= 1.0, "gain", gain, "a number in (0, 1]")
+        known = isinstance(gradient, str) and gradient in GRADIENTS
+        require(known, "gradient", gradient, f"one of {', '.join(GRADIENTS)}")
+        initial_rounds = integer("initial_rounds", initial_rounds, 0)
+        self.robot = integer("robot", robot, 0)
+        require(self.robot < self.n_robots, "robot", robot, f"an index below robots = {robots}")
+        self.connectivity_every = integer("connectivity_every", connectivity_every, 1)
+        self.network = RobotEstimators(
+            grid, dt, self.n_robots, h, settings, radius=radius, k_nearest=k_nearest,
+            rounds=rounds, gain=gain, gradient=gradient, initial_rounds=initial_rounds,
+        )  # fmt: skip
+        measurement = MeasurementModel(self.n_robots, h, settings)
+        self.central = FilterEngine.named("local")(grid, model.sigma, dt, measurement)
+        self._steps = 0
+        self._connectivity = float("nan")
+
+    def resolution(self, measured: float | None) -> float | None:
+        """None (the grid's): the robots' filters keep every grid mode."""
+        return None
+
+    @classmethod
+    def memory_estimate(cls, grid: Grid, robots: int = 1, **params: object) -> MemoryEstimate:
+        """Per robot: consensus state and buffer, kernel factors, the filters' states
+        and variances (with ``gradient: filter`` three more fields), about ``8 (4 + 3 +
+        (4 if filter)) M`` bytes, plus the grid arrays; the graph is ``O(N deg)``.
+        """
+        n = robots if isinstance(robots, int) and robots > 0 else 1
+        gradient = GRADIENTS.get(str(params.get("gradient", "grid")), GridGradient)
+        fields = 7 + gradient.memory_fields
+        per_robot = 8 * fields * grid.size + 8 * (grid.nx + grid.ny) * 4
+        return MemoryEstimate(default_memory(grid).nbytes + n * per_robot, "robots")
+
+    def _estimate(self, est: DistributedEstimate, p_central: np.ndarray) -> Estimate:
+        g = self.grid
+        adj = est.adjacency
+        if self._steps % self.connectivity_every == 0:
+            self._connectivity = algebraic_connectivity(adj)
+        self._steps += 1
+        consensus = self.network.consensus
+        network = network_figures(g, est.p_hat, p_central, adj, consensus.rounds,
+                                  consensus.fields, self._connectivity)  # fmt: skip
+        p_mean = est.p_hat.mean(axis=0).reshape(g.shape)
+        if est.q_hat is None:
+            q_mean = g.gradient(p_mean)  # G is linear: the mean of G p_hat_i
+        else:
+            q_mean = est.q_hat.mean(axis=0).reshape(2, *g.shape)
+        fields = {"p_hat_central": p_central, "p_hat_robot": est.p_hat[self.robot].reshape(g.shape)}
+        return Estimate(
+            p_mean, q_mean, *self.central.traces,
+            robots=RobotEstimates(est.p_hat, est.q_hat), fields=fields, metrics=network,
+        )  # fmt: skip
+
+    def check(self, plant: Plant, control: Control, **parts: object) -> None:
+        """Every robot estimates and moves on its own: refuse a plant without robots and
+        a law that does not move each robot by its own estimate.
+        """
+        if not plant.has_robots:
+            raise Incompatible(
+                "plant", type(plant).__name__,
+                "a plant with robots (plant=agents): every robot of estimator=distributed "
+                "estimates and moves on its own",
+            )  # fmt: skip
+        if not getattr(control, "own_estimates", False):
+            raise Incompatible(
+                "control", type(control).__name__,
+                "a law that moves each robot by the law of its own estimate (a FieldLaw "
+                "with its own at_cells, harness.control) for estimator=distributed",
+            )  # fmt: skip
+
+    def initialize(self, inp: StepInput) -> Estimate:
+        """The graph and consensus at the first positions; every filter's start."""
+        if inp.positions is None:
+            raise ValueError("estimator=distributed needs robots (plant=agents)")
+        robots = self.network.initialize(inp.positions)
+        p_central, _ = self.central.initialize(*self.network.consensus.kde())
+        return self._estimate(robots, p_central)
+
+    def step(self, inp: StepInput) -> Estimate:
+        """New graph, consensus, every robot's filter step under the shared model
+        ``A`` (of the robots' mean estimate's field), and the reference's step.
+        """
+        assert inp.positions is not None and inp.a is not None and inp.v_applied is not None
+        robots = self.network.step(inp.positions, inp.a)
+        p_kde, grad_kde = self.network.consensus.kde()  # the kernels consensus just used
+        p_central, _ = self.central.step(p_kde, grad_kde, inp.v_applied, inp.a)
+        return self._estimate(robots, p_central)
