@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 from mcap_protobuf.schema import build_file_descriptor_set
@@ -358,7 +359,9 @@ def test_live_run_publishes_while_running_and_leaves_the_log_unchanged(
     off_log = mcap_contents(tmp_path / "off" / "run.mcap")
     assert on_log[:3] == off_log[:3]
     for log in (on_log, off_log):
-        log[3]["config"]["yaml"] = log[3]["config"]["yaml"].replace("live: true", "live: false")
+        config = yaml.safe_load(log[3]["config"]["yaml"])
+        config["log"]["live"] = config["observers"]["live"]["enabled"] = False
+        log[3]["config"]["yaml"] = config
         log[3]["status"].pop("wall_s")
     assert on_log[3] == off_log[3]
     # what the client received is what the log holds, message for message
