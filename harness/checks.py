@@ -33,7 +33,7 @@ from harness.components import (
     number,
 )
 from harness.control import sampled_data_dt_bound
-from harness.densities import Box, Target
+from harness.densities import Target
 from harness.grid import Grid
 from harness.kde import KDE
 
@@ -373,7 +373,9 @@ def check_disk(cfg: DictConfig, grid: Grid, robots: int, out_dir: Path) -> int:
 
 
 def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
-    """``density`` on ``grid``, refused unless finite, of unit mass and inside the domain."""
+    """``density`` on ``grid``, refused unless finite and of unit mass, and when its
+    ``on_grid`` refuses the grid (a ``ValueError``: a box outside the domain, say).
+    """
     try:
         p = density.on_grid(grid)
     except (ValueError, TypeError) as err:
@@ -381,10 +383,6 @@ def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
     require_density = bool(np.isfinite(p).all()) and abs(grid.integrate(p) - 1.0) < 1e-9
     if not require_density:
         raise ConfigError(key, density, "a density that is finite and normalisable on the grid")
-    if isinstance(density, Box):
-        inside = density.x1 <= grid.x1 and density.y1 <= grid.y1
-        if not inside:
-            raise ConfigError(f"{key}.x1", density.x1, f"a box inside [0, {grid.x1}]^2")
     return p
 
 

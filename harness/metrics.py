@@ -240,17 +240,14 @@ def measure_grid(grid: Grid) -> Grid:
 
 
 def _target_measure(target: Target, grid: Grid, refine: int) -> TargetMeasure:
-    """``p_*`` as cell masses at cell centres: exact masses on the grid refined
-    ``refine`` times where the density has a closed form
-    (:meth:`TargetMeasure.from_density`), else the target's cell values times cell area,
-    summed into the cells of ``grid`` that hold their centres (``grid`` may be coarser
-    than the target's, :func:`measure_grid`).
+    """``p_*`` as cell masses at cell centres: the masses of the target's density on the
+    grid refined ``refine`` times (:meth:`TargetMeasure.from_density`; exact for a
+    density with a closed form); for a target given by cell values only, its cell values
+    times cell area, summed into the cells of ``grid`` that hold their centres (``grid``
+    may be coarser than the target's, :func:`measure_grid`).
     """
     if target.density is not None:
-        try:
-            return TargetMeasure.from_density(target.density, grid, refine)
-        except TypeError:  # no closed form for this density
-            pass
+        return TargetMeasure.from_density(target.density, grid, refine)
     fine = target.grid
     fx, fy = fine.mesh
     col = np.minimum(((fx - grid.x0) / grid.dx).astype(np.intp), grid.nx - 1)

@@ -42,7 +42,10 @@ def test_each_example_runs_out_of_tree(tmp_path, smoke, override):
         path = tmp_path / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text)
-    env = {**os.environ, "PYTHONPATH": str(tmp_path / "my_components")}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(tmp_path / "my_components"), str(ROOT)]),
+    }
     run_dir = tmp_path / "run"
     proc = subprocess.run(
         [
@@ -69,7 +72,10 @@ def test_an_example_parameter_is_checked_by_its_component(tmp_path):
         path = tmp_path / name
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(text)
-    env = {**os.environ, "PYTHONPATH": str(tmp_path / "my_components")}
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(tmp_path / "my_components"), str(ROOT)]),
+    }
     proc = subprocess.run(
         [
             sys.executable,
