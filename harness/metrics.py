@@ -191,7 +191,7 @@ class SwarmTruth:
         than :data:`MEASURE_CELLS` per side, on that many cells instead
         (:func:`measure_grid`).
         """
-        refine = 1 if w2_method(n_robots) == "emd" else 4
+        refine = MEASURE_REFINE[w2_method(n_robots)]
         if refine not in self._measures:
             self._measures[refine] = _target_measure(self.target, measure_grid(self.grid), refine)
         return self._measures[refine]
@@ -221,6 +221,10 @@ class SwarmTruth:
                 out[f"{name}_floor_{key}"] = repr(value)
         return out
 
+
+MEASURE_REFINE = {"emd": 1, "sliced": 4}
+"""Refinement per axis of the target measure's grid for each transport method of
+``swarm_w2`` (:meth:`SwarmTruth.measure`)."""
 
 MEASURE_CELLS = 64
 """Cells per side of the target measure of ``swarm_w2`` at most: the exact transport

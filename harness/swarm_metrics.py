@@ -276,25 +276,61 @@ def swarm_w2(
         n_projections: ``P`` for ``sliced``.
         emd_max: Threshold of ``auto``.
     """
+    if method not in W2_METHODS:
+        raise ValueError(f"swarm_w2 method must be auto, emd, sliced or sliced_pot, got {method!r}")
     positions = np.asarray(positions, dtype=float)
+    return W2_METHODS[method](positions, target, n_projections, emd_max)
+
+
+def _w2_auto(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """The method of :func:`w2_method` for this many robots."""
+    chosen = W2_METHODS[w2_method(positions.shape[1], emd_max)]
+    return chosen(positions, target, n_projections, emd_max)
+
+
+def _w2_emd(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """Exact ``W2`` by the network simplex (``ot.emd2``)."""
     n = positions.shape[1]
-    if method == "auto":
-        method = w2_method(n, emd_max)
     xs = np.ascontiguousarray(positions.T)
     a = np.full(n, 1.0 / n)
-    if method == "emd":
-        cost = ot.dist(xs, target.points, metric="sqeuclidean")
-        value = ot.emd2(a, target.weights, cost, numItermax=10_000_000, check_marginals=False)
-        return float(np.sqrt(max(float(value), 0.0)))
-    if method == "sliced":
-        return sliced_w2(positions, target, n_projections)
-    if method == "sliced_pot":
-        return float(
-            ot.sliced_wasserstein_distance(
-                xs, target.points, a, target.weights, p=2, projections=_projections(n_projections)
-            )
+    cost = ot.dist(xs, target.points, metric="sqeuclidean")
+    value = ot.emd2(a, target.weights, cost, numItermax=10_000_000, check_marginals=False)
+    return float(np.sqrt(max(float(value), 0.0)))
+
+
+def _w2_sliced(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """:func:`sliced_w2`."""
+    return sliced_w2(positions, target, n_projections)
+
+
+def _w2_sliced_pot(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """The sliced distance by ``ot.sliced_wasserstein_distance`` (the reference)."""
+    n = positions.shape[1]
+    xs = np.ascontiguousarray(positions.T)
+    a = np.full(n, 1.0 / n)
+    return float(
+        ot.sliced_wasserstein_distance(
+            xs, target.points, a, target.weights, p=2, projections=_projections(n_projections)
         )
-    raise ValueError(f"swarm_w2 method must be auto, emd, sliced or sliced_pot, got {method!r}")
+    )
+
+
+W2_METHODS: dict[str, Callable[[np.ndarray, TargetMeasure, int, int], float]] = {
+    "auto": _w2_auto,
+    "emd": _w2_emd,
+    "sliced": _w2_sliced,
+    "sliced_pot": _w2_sliced_pot,
+}
+"""The transport methods of :func:`swarm_w2` by name; each takes ``(positions, target,
+n_projections, emd_max)``."""
 
 
 def sliced_w2(
