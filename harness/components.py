@@ -221,7 +221,7 @@ class MemoryEstimate(NamedTuple):
     Attributes:
         nbytes: Bytes (an upper estimate: arrays, temporaries and factorisations).
         parameter: The component parameter that sets the size (``"n"`` for robots,
-            ``"method"`` for a filter engine), or ``""`` when only the grid does.
+            ``"engine"`` for a filter engine), or ``""`` when only the grid does.
     """
 
     nbytes: int
