@@ -81,6 +81,13 @@ SHARED_KEYS = frozenset(
 component nodes must be read by a component through interpolation
 (:func:`check_unread`)."""
 
+LOGGED_BLOCKS = ("analysis",)
+"""Optional blocks that nothing in a run reads and every run logs (in the ``config``
+record): ``analysis``, a study preset's declaration of its analysis, which
+:mod:`analysis.sweep` reads from the logs and checks. :func:`check_unread` accepts their
+keys; they are part of the config hash (:func:`harness.run.config_hash`), since they are
+logged."""
+
 PRESENTATION_KEYS = ("log.progress", "log.live", "log.live_host", "log.live_port")
 """Keys that change how a run is shown, not what it computes or logs (left out of the
 config hash, :func:`harness.jobs.config_hash`)."""
@@ -212,9 +219,10 @@ def check_resolvable(cfg: DictConfig) -> None:
 
 def check_unread(cfg: DictConfig) -> None:
     """Every key outside the component nodes is read: by the harness itself
-    (:data:`SHARED_KEYS`) or by a component through an interpolation such as
-    ``${filter.process_noise}``. (A key inside a component node that its class does
-    not take is refused when the component is built.)
+    (:data:`SHARED_KEYS`), by a component through an interpolation such as
+    ``${filter.process_noise}``, or by the analysis from the log (the keys of
+    :data:`LOGGED_BLOCKS`). (A key inside a component node that its class does not take
+    is refused when the component is built.)
 
     Raises:
         ConfigError: for a key nothing reads (``+grid.foo=1``, ``+foo=1``).
@@ -228,7 +236,8 @@ def check_unread(cfg: DictConfig) -> None:
             referenced.update(_REFERENCE.findall(value))
         elif isinstance(value, list):
             referenced.update(_REFERENCE.findall(repr(value)))
-    for key, value in _leaves({k: v for k, v in raw.items() if k not in GROUPS}):
+    outside = {k: v for k, v in raw.items() if k not in GROUPS and k not in LOGGED_BLOCKS}
+    for key, value in _leaves(outside):
         if key in SHARED_KEYS or key in referenced:
             continue
         if any(key.startswith(r + ".") for r in referenced):
