@@ -502,13 +502,15 @@ def test_analysis_warns_on_foreign_metadata_and_refuses_mixed_sweeps(tmp_path, c
     assert "rate_exact='fast' is not a number" in err
     csv_rows = list(csv.DictReader(open(tmp_path / "one" / "analysis" / "sweep.csv")))
     assert [r["rate_theory"] for r in csv_rows] == ["nan", "nan"]
-    # two sweeps in one directory: over grid.n and, separately, over agents.n
+    # two sweeps in one directory: over grid.n and, separately, over agents.n, the study
+    # declared (as its preset does) over agents.n
+    study = "analysis:\n  figure: agents_n\n  primary: [agents.n]\n"
     for name, cfg in (
         ("a", "grid:\n  n: 8\nagents:\n  n: 10\n"),
         ("b", "grid:\n  n: 16\nagents:\n  n: 10\n"),
         ("c", "grid:\n  n: 8\nagents:\n  n: 20\n"),
     ):
-        fake_log(tmp_path / "two" / name / "run.mcap", rows, None, cfg)
+        fake_log(tmp_path / "two" / name / "run.mcap", rows, None, cfg + study)
     assert sweep.main([str(tmp_path / "two")]) == 2
     err = capsys.readouterr().err
     assert "more than one sweep" in err and "grid.n" in err
