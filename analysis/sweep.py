@@ -5,24 +5,45 @@
 Reads every job directory below ``SWEEP_DIR`` that holds a ``run.mcap``, and only the
 log: its ``config`` record (the resolved config), its ``status`` and ``theory`` records
 and its ``/metrics``. Writes ``sweep.csv`` (one row per job; every config key whose
-value differs between the jobs is a column) and figures chosen by what the sweep
-varies:
+value differs between the jobs is a column) and the figure the study declares.
 
-* ``estimator.delta`` (ISS gain curve, ``iss_gain.png/.pdf``): the tail supremum of
-  ``||Phi|| = ||p - p_*||`` against the supremum of ``||eps||``, one curve per control
-  law (grouped by the logged ``control._target_``), with the fitted linear gain;
-* ``agents.n`` and ``kde.debias`` (``debias_n.png/.pdf``): ``swarm_l2`` and ``swarm_w2``
-  with their finite-N floors against N, the paper's loop against the debiased loop, and
-  ``||p_hat - p_*||`` beside them;
-* ``agents.n`` (``agents_n.png/.pdf``): tail means of ``||p_hat - p_*||``, ``swarm_l2``
-  (with its floor) and the decomposition terms against N;
-* ``estimator.radius`` (``distributed_r.png/.pdf``): the decentralised loop's
-  ``central_gap_l2`` and ``consensus_l2``, ``swarm_l2`` with its floor and the mean
-  estimate's ``||p_hat - p_*||``, and the messages and components, against the radius;
-* ``grid.n`` with robots (``conv_grid_agents.png/.pdf``): tail ``||p_hat - p_*||``,
-  ``swarm_l2`` and the decomposition terms against n, and the wall time per step;
-* otherwise (``convergence.png/.pdf``): ``||Phi||`` curves overlaid and the fitted
-  exponential rates next to the theoretical ``(alpha + sigma) lambda``.
+Declaration. A study preset (``conf/experiment/*.yaml``) declares its analysis in a
+top-level ``analysis`` block, which every job logs with its config::
+
+    analysis:
+      figure: iss_gain                    # a name of FIGURES
+      primary: [law, estimator.delta]     # the keys the study varies (besides seed)
+      tail: 0.25                          # tail fraction of each run
+
+``primary`` (default: every varied key but ``seed``) lists the keys that make the
+study's points, ``law`` standing for the control law's class (the logged
+``control._target_``); jobs that differ in any other key (but ``seed``) are more than
+one sweep, and the analysis refuses them. ``tail`` (default 0.25) is the fraction of
+each run the tail statistics use; ``--tail`` overrides it. The figures
+(:data:`FIGURES`), each drawing against the primary keys it names:
+
+* ``iss_gain`` (``law``, ``estimator.delta``; ``iss_gain.png/.pdf``): the tail supremum
+  of ``||Phi|| = ||p - p_*||`` against the supremum of ``||eps||``, one curve per
+  control law, with the fitted linear gain;
+* ``debias_n`` (``agents.n``, ``kde.debias``; ``debias_n.png/.pdf``): ``swarm_l2`` and
+  ``swarm_w2`` with their finite-N floors against N, the paper's loop against the
+  debiased loop, and ``||p_hat - p_*||`` beside them;
+* ``agents_n`` (``agents.n``; ``agents_n.png/.pdf``): tail means of ``||p_hat -
+  p_*||``, ``swarm_l2`` (with its floor) and the decomposition terms against N;
+* ``distributed_r`` (``estimator.radius``; ``distributed_r.png/.pdf``): the
+  decentralised loop's ``central_gap_l2`` and ``consensus_l2``, ``swarm_l2`` with its
+  floor and the mean estimate's ``||p_hat - p_*||``, and the messages and components,
+  against the radius;
+* ``conv_grid_agents`` (``grid.n``; ``conv_grid_agents.png/.pdf``): tail ``||p_hat -
+  p_*||``, ``swarm_l2`` and the decomposition terms against n, and the wall time per
+  step;
+* ``convergence`` (``convergence.png/.pdf``): ``||Phi||`` curves overlaid, labelled by
+  the first varied key, and the fitted exponential rates next to the theoretical
+  ``(alpha + sigma) lambda``. The generic figure: a sweep without a declaration (one
+  typed on the command line) gets it.
+
+An unknown figure name or declaration key, or jobs that declare different analyses, stop
+the analysis with one line (exit status 2).
 
 Statistics (the CSV's columns; norms in 1/length, rates in 1/s): ``phi_tail_mean``,
 ``phi_tail_sup``, ``phat_tail_mean``, ``eps_tail_mean``, ``eps_g_tail_mean`` over the
@@ -55,6 +76,8 @@ import csv
 import math
 import sys
 import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -214,12 +237,18 @@ def mixed(rows: list[dict[str, Any]], primary: list[str]) -> list[str]:
     return out
 
 
-def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+def analyse(
+    sweep_dir: Path, tail: float | None = None
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Rows of the CSV and the decoded metrics per job directory.
 
     Each row holds the job's directory, state, statistics, wall time, the short name
     of its control law (``law``) and its whole flattened config; :func:`varied` then
-    picks the config keys that differ between jobs.
+    picks the config keys that differ between jobs. The tail statistics use ``tail``,
+    else the tail the job's declaration gives (:func:`declaration`), else 0.25.
+
+    Raises:
+        DeclarationError: for a job whose declaration is not one this module reads.
     """
     rows, series = [], {}
     for log_path in sorted(sweep_dir.glob("*/run.mcap")):
@@ -242,7 +271,8 @@ def analyse(sweep_dir: Path, tail: float = 0.25) -> tuple[list[dict[str, Any]], 
         row["state"] = run.state if run.recovery is None else f"damaged ({run.state})"
         row["wall_s"] = _float(run.metadata.get("status", {}).get("wall_s"))
         if "t" in run.metrics and len(run.metrics["t"]) > 2:
-            row.update(job_stats(run, tail))
+            job_tail = tail if tail is not None else declaration(flat).tail
+            row.update(job_stats(run, job_tail))
             steps = len(run.metrics["t"]) - 1
             row["ms_per_step"] = 1e3 * row["wall_s"] / steps
             series[job_dir.name] = run.metrics
@@ -534,37 +564,246 @@ def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]
     return save_figure(fig, out, "convergence")
 
 
+# --- the declared figure ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Study:
+    """What a figure draws from: the completed jobs' rows (``usable``, with
+    statistics), their metrics by job directory, the varied config keys (``seed``
+    included) and the output directory.
+    """
+
+    usable: list[dict[str, Any]]
+    series: dict[str, Any]
+    varied: list[str]
+    out: Path
+
+
+def _iss(study: Study) -> list[Path]:
+    """:func:`iss_figure`, and the fitted gain of each law."""
+    paths, gains = iss_figure(study.usable, study.out)
+    for law, g in gains.items():
+        print(f"fitted ISS gain ({law}): {g:.4g} (tail sup ||Phi|| per unit sup ||eps||)")
+    return paths
+
+
+def _debias(study: Study) -> list[Path]:
+    """:func:`debias_figure`, and ``swarm_l2`` over its floor at each point."""
+    paths = debias_figure(study.usable, study.out)
+    for a in sorted(points(study.usable), key=lambda a: (a["kde.debias"], a["agents.n"])):
+        print(
+            f"N = {a['agents.n']}, debias = {a['kde.debias']}: swarm_l2 / floor = "
+            f"{a['swarm_ratio_mean']:.3g} (95 % CI {a['swarm_ratio_ci_low']:.3g} to "
+            f"{a['swarm_ratio_ci_high']:.3g}, {a['jobs']} seeds)"
+        )
+    return paths
+
+
+def _agents(study: Study) -> list[Path]:
+    """:func:`agents_figure`."""
+    return agents_figure(study.usable, study.out)
+
+
+def _network(study: Study) -> list[Path]:
+    """:func:`network_figure`, and the gap, ``swarm_l2`` and messages at each radius."""
+    paths = network_figure(study.usable, study.out)
+    for a in sorted(points(study.usable), key=lambda a: a["estimator.radius"]):
+        print(
+            f"r = {a['estimator.radius']}: central_gap_l2 "
+            f"{a['central_gap_tail_mean_mean']:.3g} "
+            f"(95 % CI {a['central_gap_tail_mean_ci_low']:.3g} to "
+            f"{a['central_gap_tail_mean_ci_high']:.3g}) 1/length, swarm_l2 "
+            f"{a['swarm_tail_mean_mean']:.3g} 1/length (floor "
+            f"{a['swarm_floor_mean_mean']:.3g}), {a['messages_tail_mean_mean']:.3g} "
+            f"messages per robot per step ({a['jobs']} seeds)"
+        )
+    return paths
+
+
+def _grid(study: Study) -> list[Path]:
+    """:func:`grid_figure`, and the tail error and cost at each grid size."""
+    paths = grid_figure(study.usable, study.out)
+    for a in sorted(points(study.usable), key=lambda a: a["grid.n"]):
+        print(
+            f"n = {a['grid.n']}: ||p_hat - p*|| tail {a['phat_tail_mean_mean']:.4g} "
+            f"1/length, {a['ms_per_step_mean']:.3g} ms per step ({a['jobs']} seeds)"
+        )
+    return paths
+
+
+def _convergence(study: Study) -> list[Path]:
+    """:func:`convergence_figure`, and each job's measured and theoretical rates."""
+    paths = convergence_figure(study.usable, study.series, study.varied, study.out)
+    for r in study.usable:
+        print(
+            f"{r['dir']}: rate {r['rate_fit']:.4g} 1/s measured, {r['rate_theory']:.4g} 1/s theory"
+        )
+    return paths
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A figure of a study: how to draw it, and the primary keys it draws against."""
+
+    draw: Callable[[Study], list[Path]]
+    needs: tuple[str, ...] = ()
+
+
+FIGURES: dict[str, Figure] = {
+    "iss_gain": Figure(_iss, ("law", "estimator.delta")),
+    "debias_n": Figure(_debias, ("agents.n", "kde.debias")),
+    "agents_n": Figure(_agents, ("agents.n",)),
+    "distributed_r": Figure(_network, ("estimator.radius",)),
+    "conv_grid_agents": Figure(_grid, ("grid.n",)),
+    "convergence": Figure(_convergence),
+}
+"""The figures a study can declare (``analysis.figure``), by name."""
+
+GENERIC_FIGURE = "convergence"
+"""The figure of a sweep without a declaration."""
+
+DEFAULT_TAIL = 0.25
+"""The tail fraction when neither ``--tail`` nor the declaration gives one."""
+
+DECLARATION_BLOCK = "analysis"
+"""The config block of the declaration (accepted by the harness, which logs it:
+:data:`harness.checks.LOGGED_BLOCKS`)."""
+
+DECLARATION_KEYS = ("figure", "primary", "tail")
+"""The keys of a declaration."""
+
+
+class DeclarationError(ValueError):
+    """A declaration this module cannot follow; ``str()`` is the one-line message."""
+
+
+@dataclass(frozen=True)
+class Declaration:
+    """A study's declared analysis (see the module docstring).
+
+    Attributes:
+        figure: A name of :data:`FIGURES`.
+        primary: The keys that make the study's points, or None for every varied key
+            but ``seed``.
+        tail: The tail fraction in ``(0, 1]``.
+    """
+
+    figure: str = GENERIC_FIGURE
+    primary: tuple[str, ...] | None = None
+    tail: float = DEFAULT_TAIL
+
+
+def declaration(flat: dict[str, Any]) -> Declaration:
+    """The declaration in a job's flattened config (the generic one without a block).
+
+    Raises:
+        DeclarationError: for a key that is not one of :data:`DECLARATION_KEYS`, an
+            unknown figure name, a ``primary`` that is not a list of keys, or a tail
+            outside ``(0, 1]``.
+    """
+    prefix = DECLARATION_BLOCK + "."
+    if DECLARATION_BLOCK in flat:
+        raise DeclarationError(
+            f"{DECLARATION_BLOCK}={flat[DECLARATION_BLOCK]!r}: a block with "
+            f"{', '.join(DECLARATION_KEYS)}"
+        )
+    block = {k[len(prefix) :]: v for k, v in flat.items() if k.startswith(prefix)}
+    if not block:
+        return Declaration()
+    for key, v in block.items():
+        if key not in DECLARATION_KEYS:
+            raise DeclarationError(
+                f"{prefix}{key}={v!r}: not a key of the analysis declaration "
+                f"(one of {', '.join(DECLARATION_KEYS)})"
+            )
+    figure = block.get("figure")
+    if not isinstance(figure, str) or figure not in FIGURES:
+        raise DeclarationError(
+            f"{prefix}figure={figure!r}: no such figure (one of {', '.join(FIGURES)})"
+        )
+    primary = block.get("primary")
+    if primary is not None and not (
+        isinstance(primary, list) and all(isinstance(k, str) for k in primary)
+    ):
+        raise DeclarationError(f"{prefix}primary={primary!r}: a list of config keys")
+    tail = block.get("tail", DEFAULT_TAIL)
+    if isinstance(tail, bool) or not isinstance(tail, (int, float)) or not 0 < tail <= 1:
+        raise DeclarationError(f"{prefix}tail={tail!r}: a fraction in (0, 1]")
+    return Declaration(figure, None if primary is None else tuple(primary), float(tail))
+
+
+def study_declaration(rows: list[dict[str, Any]]) -> Declaration:
+    """The one declaration of the jobs whose config was read.
+
+    Raises:
+        DeclarationError: when the jobs declare different analyses, or the declared
+            figure draws against a key the primary keys leave out.
+    """
+    found: dict[Declaration, str] = {}
+    for r in rows:
+        flat = {k[len(CONFIG_PREFIX) :]: v for k, v in r.items() if k.startswith(CONFIG_PREFIX)}
+        if flat:
+            found.setdefault(declaration(flat), r["dir"])
+    if len(found) > 1:
+        jobs = ", ".join(f"{d.figure} ({job})" for d, job in found.items())
+        raise DeclarationError(
+            f"the jobs declare different analyses: {jobs} "
+            "(analyse each sweep from a directory of its own)"
+        )
+    return next(iter(found), Declaration())
+
+
 def main(argv: list[str] | None = None) -> int:
     """CLI entry point; returns the exit status."""
     parser = argparse.ArgumentParser(description="CSV and figures of a sweep, from its logs.")
     parser.add_argument("sweep_dir", type=Path)
     parser.add_argument("--out", type=Path, default=None, help="default: SWEEP_DIR/analysis")
-    parser.add_argument("--tail", type=float, default=0.25, help="tail fraction of each run")
+    parser.add_argument(
+        "--tail",
+        type=float,
+        default=None,
+        help=f"tail fraction of each run (default: the declared one, else {DEFAULT_TAIL})",
+    )
     args = parser.parse_args(argv)
     if not args.sweep_dir.is_dir():
         print(f"error: no sweep directory at {args.sweep_dir}", file=sys.stderr)
         return 2
-    if not 0 < args.tail <= 1:
+    if args.tail is not None and not 0 < args.tail <= 1:
         print(f"error: --tail must be in (0, 1], got {args.tail}", file=sys.stderr)
         return 2
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", SweepWarning)
-        rows, series = analyse(args.sweep_dir, args.tail)
+        try:
+            rows, series = analyse(args.sweep_dir, args.tail)
+            study = study_declaration(rows)
+        except DeclarationError as err:
+            problem: DeclarationError | None = err
+        else:
+            problem = None
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
+    if problem is not None:
+        print(f"error: {args.sweep_dir}: {problem}", file=sys.stderr)
+        return 2
     if not rows:
         print(f"error: no run.mcap below {args.sweep_dir}", file=sys.stderr)
         return 2
     keys = varied(rows)
     usable = [r for r in rows if "phi_tail_sup" in r]
-    if "estimator.delta" in keys:
-        primary = ["law", "estimator.delta"]
-    elif "agents.n" in keys and "kde.debias" in keys:
-        primary = ["agents.n", "kde.debias"]
-    elif "agents.n" in keys:
-        primary = ["agents.n"]
-    else:  # a sweep of its own axes: every varied key but the seed
+    figure = FIGURES[study.figure]
+    if study.primary is None:  # a sweep of its own axes: every varied key but the seed
         primary = [k for k in keys if k != "seed"]
+    else:
+        primary = list(study.primary)
+    missing = [k for k in figure.needs if k not in primary]
+    if missing:
+        print(
+            f"error: {args.sweep_dir}: analysis.primary={primary!r}: the figure "
+            f"{study.figure} draws against {', '.join(missing)} (list it)",
+            file=sys.stderr,
+        )
+        return 2
     extra = mixed(rows, primary)
     if extra:
         print(
@@ -579,47 +818,8 @@ def main(argv: list[str] | None = None) -> int:
     write_csv(rows, out / "sweep.csv")
     write_points(points(rows), out / "sweep_aggregated.csv")
     written = [out / "sweep.csv", out / "sweep_aggregated.csv"]
-    if usable and "estimator.delta" in keys:
-        paths, gains = iss_figure(usable, out)
-        written += paths
-        for law, g in gains.items():
-            print(f"fitted ISS gain ({law}): {g:.4g} (tail sup ||Phi|| per unit sup ||eps||)")
-    elif usable and "agents.n" in keys and "kde.debias" in keys:
-        written += debias_figure(usable, out)
-        for a in sorted(points(usable), key=lambda a: (a["kde.debias"], a["agents.n"])):
-            print(
-                f"N = {a['agents.n']}, debias = {a['kde.debias']}: swarm_l2 / floor = "
-                f"{a['swarm_ratio_mean']:.3g} (95 % CI {a['swarm_ratio_ci_low']:.3g} to "
-                f"{a['swarm_ratio_ci_high']:.3g}, {a['jobs']} seeds)"
-            )
-    elif usable and "agents.n" in keys:
-        written += agents_figure(usable, out)
-    elif usable and "estimator.radius" in keys:
-        written += network_figure(usable, out)
-        for a in sorted(points(usable), key=lambda a: a["estimator.radius"]):
-            print(
-                f"r = {a['estimator.radius']}: central_gap_l2 "
-                f"{a['central_gap_tail_mean_mean']:.3g} "
-                f"(95 % CI {a['central_gap_tail_mean_ci_low']:.3g} to "
-                f"{a['central_gap_tail_mean_ci_high']:.3g}) 1/length, swarm_l2 "
-                f"{a['swarm_tail_mean_mean']:.3g} 1/length (floor "
-                f"{a['swarm_floor_mean_mean']:.3g}), {a['messages_tail_mean_mean']:.3g} "
-                f"messages per robot per step ({a['jobs']} seeds)"
-            )
-    elif usable and "grid.n" in keys and any(np.isfinite(r["swarm_tail_mean"]) for r in usable):
-        written += grid_figure(usable, out)
-        for a in sorted(points(usable), key=lambda a: a["grid.n"]):
-            print(
-                f"n = {a['grid.n']}: ||p_hat - p*|| tail {a['phat_tail_mean_mean']:.4g} "
-                f"1/length, {a['ms_per_step_mean']:.3g} ms per step ({a['jobs']} seeds)"
-            )
-    elif usable:
-        written += convergence_figure(usable, series, keys, out)
-        for r in usable:
-            print(
-                f"{r['dir']}: rate {r['rate_fit']:.4g} 1/s measured, "
-                f"{r['rate_theory']:.4g} 1/s theory"
-            )
+    if usable:
+        written += figure.draw(Study(usable, series, keys, out))
     bad = [r for r in rows if r.get("state") != "completed"]
     print(f"{len(rows)} jobs, {len(bad)} not completed")
     for p in written:

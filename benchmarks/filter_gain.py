@@ -28,7 +28,7 @@ from harness.loop import ClosedLoop
 
 def mean_gains(n: int, steps: int, seed: int, white: bool) -> tuple[float, float]:
     """``(mean d+ / r, mean d- / r)`` of the density filter after ``steps`` steps."""
-    parts = build(compose_config([f"grid.n={n}", "filter.method=local"]))
+    parts = build(compose_config([f"grid.n={n}", "filter.engine=local"]))
     engine = parts.estimator.engine  # type: ignore[attr-defined]
     assert isinstance(engine, LocalEngine)
     filters = engine.filters

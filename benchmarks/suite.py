@@ -103,7 +103,7 @@ def bench_fokker_planck() -> bool:
     return ok
 
 
-def closed_loop_rate(n: int, method: str, steps: int) -> float:
+def closed_loop_rate(n: int, engine: str, steps: int) -> float:
     """Closed-loop steps per second: agents, KDE, both filters, paper's law, reference;
     the inverse of the median wall time of a step over ``steps`` steps after the first
     (the median, as the issues ask: a step that the host delays does not move it)."""
@@ -111,7 +111,7 @@ def closed_loop_rate(n: int, method: str, steps: int) -> float:
     from harness.build import build
     from harness.loop import ClosedLoop
 
-    cfg = compose([f"grid.n={n}", f"filter.method={method}"])
+    cfg = compose([f"grid.n={n}", f"filter.engine={engine}"])
     parts = build(cfg)
     loop = ClosedLoop(
         parts.plant, parts.estimator, parts.control, parts.model, 0.01, np.random.default_rng(0)

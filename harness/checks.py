@@ -34,7 +34,7 @@ from harness.components import (
     number,
 )
 from harness.control import sampled_data_dt_bound
-from harness.densities import Box, Target
+from harness.densities import Target
 from harness.grid import Grid
 from harness.kde import KDE
 
@@ -80,6 +80,13 @@ SHARED_KEYS = frozenset(
 observers read (allowed also when a config leaves an observer out); any other key
 outside the component nodes must be read by a component through interpolation
 (:func:`check_unread`)."""
+
+LOGGED_BLOCKS = ("analysis",)
+"""Optional blocks that nothing in a run reads and every run logs (in the ``config``
+record): ``analysis``, a study preset's declaration of its analysis, which
+:mod:`analysis.sweep` reads from the logs and checks. :func:`check_unread` accepts their
+keys; they are part of the config hash (:func:`harness.identity.config_hash`), since
+they are logged."""
 
 PRESENTATION_KEYS = (
     "log.progress",
@@ -209,9 +216,10 @@ def check_resolvable(cfg: DictConfig) -> None:
 
 def check_unread(cfg: DictConfig) -> None:
     """Every key outside the component nodes is read: by the harness itself
-    (:data:`SHARED_KEYS`) or by a component through an interpolation such as
-    ``${filter.process_noise}``. (A key inside a component node that its class does
-    not take is refused when the component is built.)
+    (:data:`SHARED_KEYS`), by a component through an interpolation such as
+    ``${filter.process_noise}``, or by the analysis from the log (the keys of
+    :data:`LOGGED_BLOCKS`). (A key inside a component node that its class does not take
+    is refused when the component is built.)
 
     Raises:
         ConfigError: for a key nothing reads (``+grid.foo=1``, ``+foo=1``).
@@ -225,7 +233,8 @@ def check_unread(cfg: DictConfig) -> None:
             referenced.update(_REFERENCE.findall(value))
         elif isinstance(value, list):
             referenced.update(_REFERENCE.findall(repr(value)))
-    for key, value in _leaves({k: v for k, v in raw.items() if k not in GROUPS}):
+    outside = {k: v for k, v in raw.items() if k not in GROUPS and k not in LOGGED_BLOCKS}
+    for key, value in _leaves(outside):
         if key in SHARED_KEYS or key in referenced:
             continue
         if any(key.startswith(r + ".") for r in referenced):
@@ -389,7 +398,9 @@ def check_disk(need: DiskNeed, out_dir: Path) -> int:
 
 
 def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
-    """``density`` on ``grid``, refused unless finite, of unit mass and inside the domain."""
+    """``density`` on ``grid``, refused unless finite and of unit mass, and when its
+    ``on_grid`` refuses the grid (a ``ValueError``: a box outside the domain, say).
+    """
     try:
         p = density.on_grid(grid)
     except (ValueError, TypeError) as err:
@@ -397,10 +408,6 @@ def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
     require_density = bool(np.isfinite(p).all()) and abs(grid.integrate(p) - 1.0) < 1e-9
     if not require_density:
         raise ConfigError(key, density, "a density that is finite and normalisable on the grid")
-    if isinstance(density, Box):
-        inside = density.x1 <= grid.x1 and density.y1 <= grid.y1
-        if not inside:
-            raise ConfigError(f"{key}.x1", density.x1, f"a box inside [0, {grid.x1}]^2")
     return p
 
 

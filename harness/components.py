@@ -99,7 +99,19 @@ def flag(name: str, value: Any) -> bool:
 
 @runtime_checkable
 class Density(Protocol):
-    """A target ``p_*`` or initial density ``p_0`` (1 / length^2)."""
+    """A target ``p_*`` or initial density ``p_0`` (1 / length^2).
+
+    ``on_grid`` refuses a density that does not fit the grid's domain with a
+    ``ValueError`` (the builder names the config key with its message).
+
+    Optional, for a density with closed forms (:class:`ExactSmoothing`,
+    :class:`ExactCellMasses`): ``smoothed(grid, h, mirror)``, ``K_h * p`` at the cell
+    centres, and ``cell_masses(grid)``, the mass of every cell. Without them the swarm
+    metrics and the debiased laws use approximations from the cell values
+    (:func:`harness.swarm_metrics.smoothed_density`,
+    :func:`harness.swarm_metrics.cell_masses`). A subclass that changes the density
+    redefines them.
+    """
 
     def on_grid(self, grid: Grid) -> np.ndarray:
         """Cell values, shape ``(ny, nx)``, with grid integral 1."""
@@ -108,6 +120,29 @@ class Density(Protocol):
     def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
         """``n`` positions drawn from the density on the grid's domain, shape ``(2, n)``
         (row 0: x, row 1: y).
+        """
+        ...
+
+
+@runtime_checkable
+class ExactSmoothing(Protocol):
+    """A density that gives ``K_h * p`` exactly (optional part of :class:`Density`)."""
+
+    def smoothed(self, grid: Grid, h: float, mirror: bool) -> np.ndarray:
+        """``K_h * p`` at the cell centres, shape ``(ny, nx)`` (1 / length^2), with
+        ``K_h`` the KDE's Gaussian kernel of bandwidth ``h > 0`` (length), with its wall
+        images when ``mirror`` (:mod:`harness.swarm_metrics`).
+        """
+        ...
+
+
+@runtime_checkable
+class ExactCellMasses(Protocol):
+    """A density that gives its cell masses exactly (optional part of :class:`Density`)."""
+
+    def cell_masses(self, grid: Grid) -> np.ndarray:
+        """``int_cell p`` of every cell of ``grid``, shape ``(ny, nx)`` (dimensionless,
+        sum 1), of the continuous density the robots are sampled from.
         """
         ...
 
@@ -200,7 +235,7 @@ class MemoryEstimate(NamedTuple):
     Attributes:
         nbytes: Bytes (an upper estimate: arrays, temporaries and factorisations).
         parameter: The component parameter that sets the size (``"n"`` for robots,
-            ``"method"`` for a filter engine), or ``""`` when only the grid does.
+            ``"engine"`` for a filter engine), or ``""`` when only the grid does.
     """
 
     nbytes: int

@@ -5,6 +5,30 @@ Every density can be (a) put on a grid as cell values normalised so that the
 grid integral is exactly 1, and (b) sampled, for placing robots. Densities are
 in 1 / length^2.
 
+The three densities here also give two quantities in closed form, the optional methods
+of :class:`~harness.components.Density` (callers go through
+:func:`harness.swarm_metrics.smoothed_density` and :func:`harness.swarm_metrics.cell_masses`,
+which fall back to approximations for a density without them):
+
+* ``smoothed(grid, h, mirror)``: ``K_h * p`` at the cell centres, with ``K_h`` the KDE's
+  kernel and its wall images (:mod:`harness.swarm_metrics` describes the kernel).
+  Writing ``k(c, x) = sum_{c'} g_h(c' - x)`` over the three reflected evaluation points
+  ``c' in {c, 2 lo - c, 2 hi - c}`` (``g_h`` is even; only ``c`` without ``mirror``),
+  each axis needs ``int_lo^hi f(x) g_h(c' - x) dx``:
+
+  - uniform on ``[a, b]``: ``Phi((b - c') / h) - Phi((a - c') / h)``;
+  - Gaussian ``N(mu, s^2)`` restricted to ``[lo, hi]`` (the product of two Gaussians
+    is a Gaussian): ``N(c'; mu, s^2 + h^2) [Phi((hi - m) / r) - Phi((lo - m) / r)]``
+    with ``m = (mu h^2 + c' s^2) / (s^2 + h^2)`` and ``r = s h / sqrt(s^2 + h^2)``;
+
+  with ``Phi`` the standard normal distribution function. Each density here is a sum of
+  products of such factors per axis (mixture bumps are isotropic, the floor and boxes
+  are uniform), so ``K_h * p`` is exact to round-off (~1e-15 relative).
+* ``cell_masses(grid)``: the exact mass ``int_cell p`` of every cell (sum 1), from
+  error-function differences per axis for the mixture bumps and overlap lengths for
+  uniform parts; ``p`` is the continuous density the robots are sampled from, not its
+  grid normalisation.
+
 Default target (the paper shows its ``p_*`` only as a missing picture): the
 three-bump mixture :data:`DEFAULT_TARGET`, chosen multi-modal and asymmetric so
 that the swarm must split, with a 20 % uniform floor so ``p_*`` is bounded below
@@ -18,6 +42,7 @@ from dataclasses import dataclass, field
 from math import erf, sqrt
 
 import numpy as np
+from scipy.special import ndtr
 
 from harness.components import Density, number, require
 from harness.grid import Grid
@@ -36,6 +61,14 @@ class Uniform:
     def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
         """Uniform positions on the domain, shape ``(2, n)``."""
         return Box(grid.x0, grid.x1, grid.y0, grid.y1).sample(n, grid, rng)
+
+    def smoothed(self, grid: Grid, h: float, mirror: bool) -> np.ndarray:
+        """``K_h * p`` at the cell centres, exactly (see the module docstring)."""
+        return _box_smoothed(grid.x0, grid.x1, grid.y0, grid.y1, grid, h, mirror)
+
+    def cell_masses(self, grid: Grid) -> np.ndarray:
+        """Exact cell masses (the cells' area fractions)."""
+        return _box_masses(grid.x0, grid.x1, grid.y0, grid.y1, grid)
 
 
 @dataclass(frozen=True)
@@ -80,6 +113,14 @@ class Box:
         x = rng.uniform(self.x0, self.x1, size=n)
         y = rng.uniform(self.y0, self.y1, size=n)
         return np.vstack([x, y])
+
+    def smoothed(self, grid: Grid, h: float, mirror: bool) -> np.ndarray:
+        """``K_h * p`` at the cell centres, exactly (see the module docstring)."""
+        return _box_smoothed(self.x0, self.x1, self.y0, self.y1, grid, h, mirror)
+
+    def cell_masses(self, grid: Grid) -> np.ndarray:
+        """Exact cell masses: each cell's area inside the box over the box area."""
+        return _box_masses(self.x0, self.x1, self.y0, self.y1, grid)
 
 
 @dataclass(frozen=True)
@@ -186,6 +227,33 @@ class GaussianMixture:
             out = np.hstack([out, np.vstack([x[keep], y[keep]])])
         return out[:, :n]
 
+    def smoothed(self, grid: Grid, h: float, mirror: bool) -> np.ndarray:
+        """``K_h * p`` at the cell centres, exactly: the floor as a uniform density, each
+        bump as a product of the Gaussian factors (see the module docstring).
+        """
+        g = grid
+        mass = self.mixture_mass(g)
+        out = self.floor * _box_smoothed(g.x0, g.x1, g.y0, g.y1, g, h, mirror)
+        for w, (mx, my), s in zip(self._w, self.means, self.stds, strict=True):
+            fx = _gauss_axis(g.x, mx, s, h, g.x0, g.x1, mirror)
+            fy = _gauss_axis(g.y, my, s, h, g.y0, g.y1, mirror)
+            out += (1.0 - self.floor) * w / mass * np.outer(fy, fx)
+        return out
+
+    def cell_masses(self, grid: Grid) -> np.ndarray:
+        """Exact cell masses of the continuous density (:meth:`evaluate`): the floor's
+        area fractions plus each bump's products of error-function differences.
+        """
+        g = grid
+        ex, ey = _edges(g)
+        mass = self.mixture_mass(g)
+        out = self.floor * _box_masses(g.x0, g.x1, g.y0, g.y1, g)
+        for w, (mx, my), s in zip(self._w, self.means, self.stds, strict=True):
+            fx = np.diff(ndtr((ex - mx) / s))
+            fy = np.diff(ndtr((ey - my) / s))
+            out += (1.0 - self.floor) * w / mass * np.outer(fy, fx)
+        return out
+
 
 DEFAULT_TARGET = GaussianMixture(
     means=((0.30, 0.30), (0.72, 0.38), (0.45, 0.74)),
@@ -199,6 +267,60 @@ DEFAULT_TARGET = GaussianMixture(
 def _overlap(a0: np.ndarray, a1: np.ndarray, b0: float, b1: float) -> np.ndarray:
     """Length of the overlap of intervals ``[a0, a1]`` and ``[b0, b1]``."""
     return np.clip(np.minimum(a1, b1) - np.maximum(a0, b0), 0.0, None)
+
+
+# --- closed forms of K_h * p and of the cell masses (see the module docstring) ----------
+
+
+def _images(c: np.ndarray, lo: float, hi: float, mirror: bool) -> list[np.ndarray]:
+    """Reflected evaluation points ``c, 2 lo - c, 2 hi - c`` (only ``c`` without mirror)."""
+    return [c, 2.0 * lo - c, 2.0 * hi - c] if mirror else [c]
+
+
+def _uniform_axis(
+    c: np.ndarray, a: float, b: float, h: float, lo: float, hi: float, mirror: bool
+) -> np.ndarray:
+    """``int_a^b k(c, x) dx`` for the 1-D mirrored kernel ``k`` (dimensionless)."""
+    out = np.zeros_like(c)
+    for ci in _images(c, lo, hi, mirror):
+        out += ndtr((b - ci) / h) - ndtr((a - ci) / h)
+    return out
+
+
+def _gauss_axis(
+    c: np.ndarray, mu: float, s: float, h: float, lo: float, hi: float, mirror: bool
+) -> np.ndarray:
+    """``int_lo^hi N(x; mu, s^2) k(c, x) dx`` for the 1-D mirrored kernel (1 / length)."""
+    var = s * s + h * h
+    r = s * h / sqrt(var)
+    out = np.zeros_like(c)
+    for ci in _images(c, lo, hi, mirror):
+        peak = np.exp(-((ci - mu) ** 2) / (2.0 * var)) / sqrt(2.0 * np.pi * var)
+        m = (mu * h * h + ci * s * s) / var
+        out += peak * (ndtr((hi - m) / r) - ndtr((lo - m) / r))
+    return out
+
+
+def _box_smoothed(
+    a0: float, a1: float, b0: float, b1: float, grid: Grid, h: float, mirror: bool
+) -> np.ndarray:
+    """``K_h *`` the uniform density on ``[a0, a1] x [b0, b1]`` at the cell centres."""
+    fx = _uniform_axis(grid.x, a0, a1, h, grid.x0, grid.x1, mirror)
+    fy = _uniform_axis(grid.y, b0, b1, h, grid.y0, grid.y1, mirror)
+    return np.outer(fy, fx) / ((a1 - a0) * (b1 - b0))
+
+
+def _edges(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """The cell edges along x and y."""
+    return np.linspace(grid.x0, grid.x1, grid.nx + 1), np.linspace(grid.y0, grid.y1, grid.ny + 1)
+
+
+def _box_masses(a0: float, a1: float, b0: float, b1: float, grid: Grid) -> np.ndarray:
+    """Cell masses of the uniform density on ``[a0, a1] x [b0, b1]``."""
+    ex, ey = _edges(grid)
+    fx = np.clip(np.minimum(ex[1:], a1) - np.maximum(ex[:-1], a0), 0.0, None)
+    fy = np.clip(np.minimum(ey[1:], b1) - np.maximum(ey[:-1], b0), 0.0, None)
+    return np.outer(fy, fx) / ((a1 - a0) * (b1 - b0))
 
 
 @dataclass(frozen=True)

@@ -186,12 +186,13 @@ class FilterEstimator:
 
     Args:
         grid, model: Run-time arguments (the model gives ``sigma``).
-        method: Engine name (``filter.method``).
+        engine: Engine name (``filter.engine``).
         robots: Swarm size ``N`` of the KDE noise constants ``k``, ``k_g``.
         bandwidth: KDE bandwidth ``h`` (length).
         dt: Measurement period (s).
         process_noise, r_scale, r_floor, initial_variance, band_limit: As
-            :class:`harness.filters.common.FilterSettings` (``filter.*``).
+            :class:`harness.filters.common.FilterSettings` (``filter.*``), checked by
+            :meth:`~harness.filters.common.FilterSettings.checked`.
     """
 
     uses_kde = True
@@ -208,7 +209,7 @@ class FilterEstimator:
         self,
         grid: Grid,
         model: FokkerPlanck,
-        method: str,
+        engine: str,
         robots: int,
         bandwidth: float,
         dt: float,
@@ -219,29 +220,25 @@ class FilterEstimator:
         band_limit: float = 2.5,
     ) -> None:
         engines = sorted(FilterEngine.registry)
-        if method not in FilterEngine.registry:
-            raise ParameterError("method", method, f"one of {', '.join(engines)}")
-        settings = FilterSettings(
-            process_noise=number("process_noise", process_noise, 0.0),
-            r_scale=number("r_scale", r_scale, 0.0, strict=True),
-            r_floor=number("r_floor", r_floor, 0.0, strict=True),
-            initial_variance=number("initial_variance", initial_variance, 0.0, strict=True),
-            band_limit=number("band_limit", band_limit, 0.0, strict=True),
+        if engine not in FilterEngine.registry:
+            raise ParameterError("engine", engine, f"one of {', '.join(engines)}")
+        settings = FilterSettings.checked(
+            process_noise, r_scale, r_floor, initial_variance, band_limit
         )
         measurement = MeasurementModel(
             integer("robots", robots, 1), number("bandwidth", bandwidth, 0.0, strict=True), settings
         )
         dt = number("dt", dt, 0.0, strict=True)
-        self.engine = FilterEngine.named(method)(grid, model.sigma, dt, measurement)
+        self.engine = FilterEngine.named(engine)(grid, model.sigma, dt, measurement)
 
     @classmethod
-    def memory_estimate(cls, grid: Grid, method: str = "local", **params: object) -> MemoryEstimate:
+    def memory_estimate(cls, grid: Grid, engine: str = "local", **params: object) -> MemoryEstimate:
         """The engine's (:meth:`FilterEngine.memory_bytes`; dense engines are ``O(M^2)``)
         plus the grid arrays; the default estimate for an unknown engine name.
         """
-        engine = FilterEngine.registry.get(method) if isinstance(method, str) else None
-        extra = engine.memory_bytes(grid) if engine is not None else 0
-        return MemoryEstimate(default_memory(grid).nbytes + extra, "method")
+        chosen = FilterEngine.registry.get(engine) if isinstance(engine, str) else None
+        extra = chosen.memory_bytes(grid) if chosen is not None else 0
+        return MemoryEstimate(default_memory(grid).nbytes + extra, "engine")
 
     def check(self, control: Control, **parts: object) -> None:
         """The filters' transport model is ``A(v)`` of the law's field: refuse a law

@@ -205,7 +205,7 @@ class SwarmTruth:
         than :data:`MEASURE_CELLS` per side, on that many cells instead
         (:func:`measure_grid`).
         """
-        refine = 1 if w2_method(n_robots) == "emd" else 4
+        refine = MEASURE_REFINE[w2_method(n_robots)]
         if refine not in self._measures:
             self._measures[refine] = _target_measure(self.target, measure_grid(self.grid), refine)
         return self._measures[refine]
@@ -236,6 +236,10 @@ class SwarmTruth:
         return out
 
 
+MEASURE_REFINE = {"emd": 1, "sliced": 4}
+"""Refinement per axis of the target measure's grid for each transport method of
+``swarm_w2`` (:meth:`SwarmTruth.measure`)."""
+
 MEASURE_CELLS = 64
 """Cells per side of the target measure of ``swarm_w2`` at most: the exact transport
 holds ``8 N M`` bytes for ``M`` atoms (0.5 GB and minutes per evaluation for 1024
@@ -254,17 +258,14 @@ def measure_grid(grid: Grid) -> Grid:
 
 
 def _target_measure(target: Target, grid: Grid, refine: int) -> TargetMeasure:
-    """``p_*`` as cell masses at cell centres: exact masses on the grid refined
-    ``refine`` times where the density has a closed form
-    (:meth:`TargetMeasure.from_density`), else the target's cell values times cell area,
-    summed into the cells of ``grid`` that hold their centres (``grid`` may be coarser
-    than the target's, :func:`measure_grid`).
+    """``p_*`` as cell masses at cell centres: the masses of the target's density on the
+    grid refined ``refine`` times (:meth:`TargetMeasure.from_density`; exact for a
+    density with a closed form); for a target given by cell values only, its cell values
+    times cell area, summed into the cells of ``grid`` that hold their centres (``grid``
+    may be coarser than the target's, :func:`measure_grid`).
     """
     if target.density is not None:
-        try:
-            return TargetMeasure.from_density(target.density, grid, refine)
-        except TypeError:  # no closed form for this density
-            pass
+        return TargetMeasure.from_density(target.density, grid, refine)
     fine = target.grid
     fx, fy = fine.mesh
     col = np.minimum(((fx - grid.x0) / grid.dx).astype(np.intp), grid.nx - 1)

@@ -147,19 +147,16 @@ def transfer(k: np.ndarray, bandwidth: float | None) -> np.ndarray:
 def smoothed_target(target: Target, bandwidth: float, mirror: bool = True) -> Target:
     """The target as the KDE sees it, ``p~_* = K_h * p_*``, with its grid gradient.
 
-    Exact (:func:`harness.swarm_metrics.smoothed_density`) when the target's continuous
-    density has a closed form; otherwise the noise-free KDE of its cell values
+    From the target's continuous density by :func:`harness.swarm_metrics.smoothed_density`
+    (exact for a density with a closed form, else the noise-free KDE of its cell values);
+    for a target given by cell values only, the noise-free KDE of those
     (:class:`Smoother`). ``p~_* >= min p_*`` (the mirrored kernel has unit mass on the
     domain), so it is a valid target for the laws.
     """
     from harness.swarm_metrics import smoothed_density
 
-    values = None
-    if target.density is not None:
-        try:
-            values = smoothed_density(target.density, target.grid, bandwidth, mirror)
-        except TypeError:  # no closed form for this density
-            values = None
-    if values is None:
+    if target.density is None:
         values = Smoother(target.grid, bandwidth, mirror)(target.p)[0]
+    else:
+        values = smoothed_density(target.density, target.grid, bandwidth, mirror)
     return Target.from_values(target.grid, values)

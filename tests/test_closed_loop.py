@@ -34,7 +34,7 @@ def test_default_config_is_the_papers(compose):
     assert cfg.init._target_ == "harness.densities.Box"
     assert cfg.plant._target_ == "harness.plants.Agents"
     assert cfg.estimator._target_ == "harness.estimators.FilterEstimator"
-    assert cfg.filter.method == "local"
+    assert cfg.filter.engine == "local"
     assert cfg.control._target_ == "harness.control.PaperControl" and cfg.sim.t_final >= 100
 
 

@@ -181,7 +181,7 @@ def test_sweep_with_an_invalid_point_lists_it_and_exits_nonzero(tmp_path):
         ("+filter.foo=1", "filter.foo"),
         ("+foo=1", "foo"),
         ("plant.n=${nosuch}", "plant.n"),
-        ("~filter", "estimator.method"),
+        ("~filter", "estimator.process_noise"),
         ("~grid", "grid"),
         ("~sim", "sim"),
         ("~plant", "plant"),
@@ -239,7 +239,7 @@ def test_memory_estimate_bounds_the_measured_peak(compose):
 
     for overrides in (
         ["agents.n=200000", "grid.n=16", "log.progress=off"],
-        ["filter.method=reference", "grid.n=12", "agents.n=100", "log.progress=off"],
+        ["filter.engine=reference", "grid.n=12", "agents.n=100", "log.progress=off"],
     ):
         cfg = compose(overrides)
         tracemalloc.start()
@@ -261,15 +261,15 @@ def test_dense_filter_estimate_grows_as_cells_squared_and_is_refused(compose):
     from harness.grid import Grid
 
     dense = [
-        FilterEstimator.memory_estimate(Grid.square(n), method="reference").nbytes for n in (16, 32)
+        FilterEstimator.memory_estimate(Grid.square(n), engine="reference").nbytes for n in (16, 32)
     ]
     local = [
-        FilterEstimator.memory_estimate(Grid.square(n), method="local").nbytes for n in (16, 32)
+        FilterEstimator.memory_estimate(Grid.square(n), engine="local").nbytes for n in (16, 32)
     ]
     assert dense[1] / dense[0] > 12 and local[1] / local[0] < 10  # M^2 against ~M^1.5
     grid64 = Grid.square(64)
-    with pytest.raises(ConfigError, match=r"filter.method='reference'.*memory.*GB"):
-        checks.check_memory(compose(["filter.method=reference", "grid.n=64"]), grid64, (10**9, "t"))
+    with pytest.raises(ConfigError, match=r"filter.engine='reference'.*memory.*GB"):
+        checks.check_memory(compose(["filter.engine=reference", "grid.n=64"]), grid64, (10**9, "t"))
 
 
 def test_log_estimate_bounds_the_log_and_a_full_disk_is_refused(tmp_path, compose, monkeypatch):
@@ -503,13 +503,15 @@ def test_analysis_warns_on_foreign_metadata_and_refuses_mixed_sweeps(tmp_path, c
     assert "rate_exact='fast' is not a number" in err
     csv_rows = list(csv.DictReader(open(tmp_path / "one" / "analysis" / "sweep.csv")))
     assert [r["rate_theory"] for r in csv_rows] == ["nan", "nan"]
-    # two sweeps in one directory: over grid.n and, separately, over agents.n
+    # two sweeps in one directory: over grid.n and, separately, over agents.n, the study
+    # declared (as its preset does) over agents.n
+    study = "analysis:\n  figure: agents_n\n  primary: [agents.n]\n"
     for name, cfg in (
         ("a", "grid:\n  n: 8\nagents:\n  n: 10\n"),
         ("b", "grid:\n  n: 16\nagents:\n  n: 10\n"),
         ("c", "grid:\n  n: 8\nagents:\n  n: 20\n"),
     ):
-        fake_log(tmp_path / "two" / name / "run.mcap", rows, None, cfg)
+        fake_log(tmp_path / "two" / name / "run.mcap", rows, None, cfg + study)
     assert sweep.main([str(tmp_path / "two")]) == 2
     err = capsys.readouterr().err
     assert "more than one sweep" in err and "grid.n" in err

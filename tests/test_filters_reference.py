@@ -4,7 +4,12 @@ from scipy import stats
 
 from harness.densities import DEFAULT_TARGET, Box, GaussianMixture
 from harness.filters.common import FilterSettings, Integrator, MeasurementModel, transition_dense
-from harness.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
+from harness.filters.reference import (
+    FilterpyDensityFilter,
+    FilterpyGradientFilter,
+    ReferenceDensityFilter,
+    ReferenceGradientFilter,
+)
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.velocity import VelocityField
@@ -33,7 +38,7 @@ def test_density_filter_matches_filterpy(n):
     g = Grid.square(n)
     model = MeasurementModel(256, 0.1, FilterSettings(process_noise=0.01, initial_variance=5.0))
     ours = ReferenceDensityFilter(g, 1e-3, 0.05, model)
-    ref = ReferenceDensityFilter(g, 1e-3, 0.05, model, engine="filterpy")
+    ref = FilterpyDensityFilter(g, 1e-3, 0.05, model)
     truth = FokkerPlanck(g, 1e-3)
     p = GaussianMixture(means=((0.3, 0.6),), stds=(0.2,), weights=(1,)).on_grid(g)
     y0 = p + 0.1 * rng.normal(size=g.shape)
@@ -58,7 +63,7 @@ def test_gradient_filter_matches_filterpy(n):
     model = MeasurementModel(256, 0.1, FilterSettings(process_noise=0.01))
     integ = Integrator.build(g)
     ours = ReferenceGradientFilter(g, 1e-3, 0.05, model, integrator=integ)
-    ref = ReferenceGradientFilter(g, 1e-3, 0.05, model, engine="filterpy", integrator=integ)
+    ref = FilterpyGradientFilter(g, 1e-3, 0.05, model, integrator=integ)
     truth = FokkerPlanck(g, 1e-3)
     p = GaussianMixture(means=((0.3, 0.6),), stds=(0.2,), weights=(1,)).on_grid(g)
     y0 = g.gradient(p) + rng.normal(size=(2, *g.shape))

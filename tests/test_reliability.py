@@ -41,7 +41,7 @@ BAD_VALUES = {
     "target.floor": st.one_of(st.floats(-1, 0), st.floats(1.01, 3)),
     "plant": st.sampled_from(["robots", "swarm", "pde"]),
     "control": st.sampled_from(["pid", "optimal"]),
-    "filter.method": st.sampled_from(["ukf", "dense"]),
+    "filter.engine": st.sampled_from(["ukf", "dense"]),
     "grid.n ": st.sampled_from(["abc", "1.5", "true"]),
     "control.alpha ": st.sampled_from(["fast", "[1, 2]"]),
 }

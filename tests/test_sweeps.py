@@ -275,3 +275,66 @@ def test_sigterm_to_the_sweep_stops_its_jobs_and_writes_the_table(tmp_path):
         with warnings.catch_warnings():
             warnings.simplefilter("error", LogWarning)
             assert load_run(d).state == "aborted"
+
+
+def test_the_declared_figure_is_drawn_and_an_unknown_one_refused(tmp_path):
+    """The analysis block a sweep's jobs log picks the figure, whatever the keys vary."""
+    from analysis.configs import logged_config
+
+    declared = tmp_path / "declared"
+    multirun(
+        declared,
+        "agents.n=100,120",
+        *TINY[:1],
+        *TINY[2:],
+        "+analysis.figure=agents_n",
+        "+analysis.primary=[agents.n]",
+        "+analysis.tail=0.5",
+    )
+    (job, _) = job_dirs(declared)
+    assert logged_config(load_run(job))["analysis"] == {
+        "figure": "agents_n",
+        "primary": ["agents.n"],
+        "tail": 0.5,
+    }
+    out = tmp_path / "an"
+    proc = subprocess.run(
+        [sys.executable, "-m", "analysis.sweep", str(declared), "--out", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert (out / "agents_n.png").is_file() and not (out / "convergence.png").exists()
+
+    unknown = tmp_path / "unknown"
+    multirun(unknown, "seed=1", *TINY, "+analysis.figure=nosuch")
+    proc = subprocess.run(
+        [sys.executable, "-m", "analysis.sweep", str(unknown)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert "analysis.figure='nosuch': no such figure (one of iss_gain," in proc.stderr
+    assert not (unknown / "analysis").exists()
+
+
+def test_declarations_are_checked():
+    from analysis.sweep import DeclarationError, declaration
+
+    assert declaration({"grid.n": 30}).figure == "convergence"
+    decl = declaration({"analysis.figure": "iss_gain", "analysis.primary": ["law"]})
+    assert (decl.figure, decl.primary, decl.tail) == ("iss_gain", ("law",), 0.25)
+    for flat, text in (
+        ({"analysis.figure": "nosuch"}, "analysis.figure='nosuch': no such figure"),
+        ({"analysis.figure": "agents_n", "analysis.tial": 0.5}, "analysis.tial=0.5: not a key"),
+        ({"analysis.figure": "agents_n", "analysis.tail": 2}, "analysis.tail=2: a fraction"),
+        ({"analysis.figure": "agents_n", "analysis.primary": "agents.n"}, "a list of config"),
+        ({"analysis": "agents_n"}, "analysis='agents_n': a block with figure"),
+    ):
+        with pytest.raises(DeclarationError, match=text):
+            declaration(flat)

@@ -8,6 +8,7 @@ estimates, the centralised reference filters beside them, and the network figure
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -228,13 +229,9 @@ class DistributedEstimator:
         dt = number("dt", dt, 0.0, strict=True)
         wall_images = "true (the robots' kernels carry the wall images)"
         require(flag("mirror", mirror), "mirror", mirror, wall_images)
-        settings = FilterSettings(
-            process_noise=number("process_noise", process_noise, 0.0),
-            r_scale=number("r_scale", r_scale, 0.0, strict=True),
-            r_floor=number("r_floor", r_floor, 0.0, strict=True),
-            initial_variance=number("initial_variance", initial_variance, 0.0, strict=True),
-            band_limit=np.inf,
-        )
+        # the robots' filters keep every grid mode (no band limit)
+        checked = FilterSettings.checked(process_noise, r_scale, r_floor, initial_variance)
+        settings = dataclasses.replace(checked, band_limit=np.inf)
         require((radius is None) != (k_nearest is None), "radius", radius,
                 "a length >= 0, or null with k_nearest set (exactly one of the two)")  # fmt: skip
         if radius is not None:

@@ -54,6 +54,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.fft as sfft
@@ -61,6 +62,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from harness.components import number
 from harness.grid import Grid
 from harness.kde import noise_constants
 
@@ -91,6 +93,30 @@ class FilterSettings:
     r_floor: float = 0.05
     initial_variance: float = 10.0
     band_limit: float = 2.5
+
+    @classmethod
+    def checked(
+        cls,
+        process_noise: Any = 0.1,
+        r_scale: Any = 1.0,
+        r_floor: Any = 0.05,
+        initial_variance: Any = 10.0,
+        band_limit: Any = 2.5,
+    ) -> FilterSettings:
+        """The settings from config values (the ``filter`` block), each checked by
+        :func:`harness.components.number`: a refused value raises
+        :class:`~harness.components.ParameterError` naming its parameter, which the
+        builder reports as one line naming the config key. The estimators validate the
+        ``filter`` block here. ``band_limit`` is a finite number here; ``inf`` (every
+        grid mode) is for settings made in code.
+        """
+        return cls(
+            process_noise=number("process_noise", process_noise, 0.0),
+            r_scale=number("r_scale", r_scale, 0.0, strict=True),
+            r_floor=number("r_floor", r_floor, 0.0, strict=True),
+            initial_variance=number("initial_variance", initial_variance, 0.0, strict=True),
+            band_limit=number("band_limit", band_limit, 0.0, strict=True),
+        )
 
     def __post_init__(self) -> None:
         if not (self.band_limit > 0):

@@ -3,12 +3,13 @@
 An engine runs the paper's two filters (eqs. ``density filter``, ``density Riccati``,
 ``gradient filter``, ``gradient Riccati``) on the KDE and reports the traces of their
 covariances and process noises. Engines register themselves by name when subclassed
-(``class Mine(FilterEngine, name="mine")``), and ``filter.method`` picks one by that
+(``class Mine(FilterEngine, name="mine")``), and ``filter.engine`` picks one by that
 name (:meth:`FilterEngine.named`), so the estimator never branches on it.
 
 * ``local``: :class:`harness.filters.local.LocalFilters` (fast, the default);
 * ``reference``: the dense grid filters of :mod:`harness.filters.reference`;
-* ``filterpy``: the same dense filters with filterpy's ``KalmanFilter`` as the engine.
+* ``filterpy``: the same dense filters with filterpy's ``KalmanFilter`` doing the
+  algebra.
 """
 
 from __future__ import annotations
@@ -21,7 +22,12 @@ import scipy.sparse as sp
 from harness.components import sparse_lu_bytes
 from harness.filters.common import Integrator, MeasurementModel
 from harness.filters.local import LocalFilters
-from harness.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
+from harness.filters.reference import (
+    FilterpyDensityFilter,
+    FilterpyGradientFilter,
+    ReferenceDensityFilter,
+    ReferenceGradientFilter,
+)
 from harness.grid import Grid
 from harness.velocity import VelocityField
 
@@ -115,9 +121,13 @@ class LocalEngine(FilterEngine, name="local"):
 
 
 class ReferenceEngine(FilterEngine, name="reference"):
-    """The dense grid filters, numpy engine (:mod:`harness.filters.reference`)."""
+    """The dense grid filters with numpy doing the algebra
+    (:mod:`harness.filters.reference`); ``density_filter`` and ``gradient_filter`` are
+    their classes.
+    """
 
-    backend = "numpy"
+    density_filter: type[ReferenceDensityFilter] = ReferenceDensityFilter
+    gradient_filter: type[ReferenceGradientFilter] = ReferenceGradientFilter
     dense_copies = 20
     """Dense ``M x M`` float64 arrays held at once: density filter ``P``, ``F``, ``Q`` and
     temporaries (3), gradient filter (``2M`` states: 4 each for ``P``, ``F`` and a
@@ -131,14 +141,9 @@ class ReferenceEngine(FilterEngine, name="reference"):
 
     def __init__(self, grid: Grid, sigma: float, dt: float, measurement: MeasurementModel):
         super().__init__(grid, sigma, dt, measurement)
-        self.density = ReferenceDensityFilter(grid, sigma, dt, measurement, engine=self.backend)
-        self.gradient = ReferenceGradientFilter(
-            grid,
-            sigma,
-            dt,
-            measurement,
-            engine=self.backend,
-            integrator=Integrator.build(grid),
+        self.density = self.density_filter(grid, sigma, dt, measurement)
+        self.gradient = self.gradient_filter(
+            grid, sigma, dt, measurement, integrator=Integrator.build(grid)
         )
 
     def initialize(self, p_kde: np.ndarray, grad_kde: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -161,5 +166,6 @@ class ReferenceEngine(FilterEngine, name="reference"):
 class FilterpyEngine(ReferenceEngine, name="filterpy"):
     """The dense grid filters with filterpy's ``KalmanFilter`` doing the algebra."""
 
-    backend = "filterpy"
+    density_filter = FilterpyDensityFilter
+    gradient_filter = FilterpyGradientFilter
     dense_copies = 40  # filterpy keeps its own F, Q, H, B, K, S and prior/post copies

@@ -34,60 +34,36 @@ from harness.velocity import VelocityField
 
 @dataclass
 class DenseKalman:
-    """Discrete Kalman filter with ``H = I`` and diagonal ``R`` (dense ``P``).
-
-    ``engine='numpy'`` computes the equations below directly; ``engine='filterpy'``
-    hands the same ``F, Q, R`` to ``filterpy.kalman.KalmanFilter`` (slower; used as
-    the reference in tests and as the baseline in benchmarks).
+    """Discrete Kalman filter with ``H = I`` and diagonal ``R`` (dense ``P``), the
+    equations below computed directly with numpy. :class:`FilterpyKalman` hands the
+    same ``F, Q, R`` to filterpy's ``KalmanFilter`` instead.
     """
 
     x: np.ndarray
     P: np.ndarray
-    engine: str = "numpy"
     x_prior: np.ndarray = field(init=False)
     P_prior: np.ndarray = field(init=False)
     x_post: np.ndarray = field(init=False)
     P_post: np.ndarray = field(init=False)
-    _kf: KalmanFilter | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
-        if self.engine not in ("numpy", "filterpy"):
-            raise ValueError(f"filter engine must be numpy or filterpy, got {self.engine!r}")
         self.x = np.asarray(self.x, dtype=float).copy()
         self.P = np.asarray(self.P, dtype=float).copy()
         self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
         self.x_post, self.P_post = self.x.copy(), self.P.copy()
-        if self.engine == "filterpy":
-            m = self.x.size
-            kf = KalmanFilter(dim_x=m, dim_z=m)
-            kf.x = self.x.reshape(m, 1).copy()
-            kf.P = self.P.copy()
-            kf.H = np.eye(m)
-            self._kf = kf
 
     def predict(self, F: np.ndarray, q: float | np.ndarray, u: np.ndarray | None = None) -> None:
         """``x^- = F x^+ + u``, ``P^- = F P^+ F^T + Q`` with ``Q = q I`` (``q`` a number)
         or ``Q = q`` (a matrix).
         """
-        if self._kf is not None:
-            m = self.x.size
-            self._kf.F = F
-            self._kf.Q = q * np.eye(m) if np.ndim(q) == 0 else np.asarray(q)
-            if u is None:
-                self._kf.predict()
-            else:
-                self._kf.B = np.eye(m)
-                self._kf.predict(u=u.reshape(m, 1))
-            self.x, self.P = self._kf.x.ravel().copy(), self._kf.P.copy()
+        self.x = F @ self.x
+        if u is not None:
+            self.x = self.x + u
+        self.P = F @ self.P @ F.T
+        if np.ndim(q) == 0:
+            self.P[np.diag_indices_from(self.P)] += q
         else:
-            self.x = F @ self.x
-            if u is not None:
-                self.x = self.x + u
-            self.P = F @ self.P @ F.T
-            if np.ndim(q) == 0:
-                self.P[np.diag_indices_from(self.P)] += q
-            else:
-                self.P = self.P + q
+            self.P = self.P + q
         self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
 
     def update(self, y: np.ndarray, r: np.ndarray) -> None:
@@ -97,36 +73,72 @@ class DenseKalman:
             S = P^- + R,  K = P^- S^{-1},  x^+ = x^- + K (y - x^-),
             P^+ = (I - K) P^- (I - K)^T + K R K^T = P^- - P^- S^{-1} P^-.
 
-        filterpy evaluates the Joseph form (first line); the numpy engine the
-        equal symmetric form with ``S = L L^T``, ``V = L^{-1} P^-``: ``P^+ = P^- - V^T
-        V`` and ``K (y - x^-) = V^T L^{-1} (y - x^-)`` (a third of the flops).
+        filterpy evaluates the Joseph form (first line, :class:`FilterpyKalman`); this
+        class the equal symmetric form with ``S = L L^T``, ``V = L^{-1} P^-``: ``P^+ =
+        P^- - V^T V`` and ``K (y - x^-) = V^T L^{-1} (y - x^-)`` (a third of the flops).
         """
         y = np.asarray(y, dtype=float).ravel()
-        if self._kf is not None:
-            self._kf.update(y.reshape(-1, 1), R=np.diag(r) if np.ndim(r) == 1 else r)
-            self.x, self.P = self._kf.x.ravel().copy(), self._kf.P.copy()
+        if np.ndim(r) == 1:
+            s = self.P.copy()
+            s[np.diag_indices_from(s)] += r
         else:
-            if np.ndim(r) == 1:
-                s = self.P.copy()
-                s[np.diag_indices_from(s)] += r
-            else:
-                s = self.P + r
-            low = sla.cholesky(s, lower=True, check_finite=False)
-            v = sla.solve_triangular(low, self.P, lower=True, check_finite=False)
-            innovation = sla.solve_triangular(low, y - self.x, lower=True, check_finite=False)
-            self.x = self.x + v.T @ innovation
-            self.P = self.P - v.T @ v
+            s = self.P + r
+        low = sla.cholesky(s, lower=True, check_finite=False)
+        v = sla.solve_triangular(low, self.P, lower=True, check_finite=False)
+        innovation = sla.solve_triangular(low, y - self.x, lower=True, check_finite=False)
+        self.x = self.x + v.T @ innovation
+        self.P = self.P - v.T @ v
+        self.x_post, self.P_post = self.x.copy(), self.P.copy()
+
+
+@dataclass
+class FilterpyKalman(DenseKalman):
+    """:class:`DenseKalman` with filterpy's ``KalmanFilter`` doing the algebra (slower;
+    the reference in tests and the baseline in benchmarks). ``_kf`` is filterpy's filter.
+    """
+
+    _kf: KalmanFilter = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        m = self.x.size
+        kf = KalmanFilter(dim_x=m, dim_z=m)
+        kf.x = self.x.reshape(m, 1).copy()
+        kf.P = self.P.copy()
+        kf.H = np.eye(m)
+        self._kf = kf
+
+    def predict(self, F: np.ndarray, q: float | np.ndarray, u: np.ndarray | None = None) -> None:
+        """:meth:`DenseKalman.predict` by ``KalmanFilter.predict`` (``B = I`` for ``u``)."""
+        m = self.x.size
+        self._kf.F = F
+        self._kf.Q = q * np.eye(m) if np.ndim(q) == 0 else np.asarray(q)
+        if u is None:
+            self._kf.predict()
+        else:
+            self._kf.B = np.eye(m)
+            self._kf.predict(u=u.reshape(m, 1))
+        self.x, self.P = self._kf.x.ravel().copy(), self._kf.P.copy()
+        self.x_prior, self.P_prior = self.x.copy(), self.P.copy()
+
+    def update(self, y: np.ndarray, r: np.ndarray) -> None:
+        """:meth:`DenseKalman.update` by ``KalmanFilter.update`` (the Joseph form)."""
+        y = np.asarray(y, dtype=float).ravel()
+        self._kf.update(y.reshape(-1, 1), R=np.diag(r) if np.ndim(r) == 1 else r)
+        self.x, self.P = self._kf.x.ravel().copy(), self._kf.P.copy()
         self.x_post, self.P_post = self.x.copy(), self.P.copy()
 
 
 class _DenseGridFilter:
     """What the two reference filters share: set-up, the start from a first KDE, and
-    the L2 traces of ``P`` and ``Q``. ``_kind`` selects ``k`` (0) or ``k_g`` (1) and
-    ``_states`` is the number of states per cell (1 or 2).
+    the L2 traces of ``P`` and ``Q``. ``_kind`` selects ``k`` (0) or ``k_g`` (1),
+    ``_states`` is the number of states per cell (1 or 2) and ``kalman`` the class
+    doing the Kalman algebra.
     """
 
     _kind = 0
     _states = 1
+    kalman: type[DenseKalman] = DenseKalman
 
     def __init__(
         self,
@@ -134,12 +146,10 @@ class _DenseGridFilter:
         sigma: float,
         dt: float,
         measurement: MeasurementModel,
-        engine: str = "numpy",
     ) -> None:
         self.grid, self.dt, self.measurement = grid, dt, measurement
         self.settings: FilterSettings = measurement.settings
         self.operator = FokkerPlanck(grid, sigma)
-        self.engine = engine
         self.kf: DenseKalman | None = None
         band = BandLimit(grid, self.settings.band_limit / measurement.bandwidth)
         self.projector: np.ndarray | None = None if band.is_identity else band.matrix()
@@ -182,7 +192,7 @@ class _DenseGridFilter:
         p0 = var * np.eye(m)
         if self.projector is not None:
             x0, p0 = self.projector @ x0, var * self.projector
-        self.kf = DenseKalman(x0, p0, engine=self.engine)
+        self.kf = self.kalman(x0, p0)
 
     @property
     def trace_P(self) -> float:
@@ -240,10 +250,9 @@ class ReferenceGradientFilter(_DenseGridFilter):
         sigma: float,
         dt: float,
         measurement: MeasurementModel,
-        engine: str = "numpy",
         integrator: Integrator | None = None,
     ) -> None:
-        super().__init__(grid, sigma, dt, measurement, engine)
+        super().__init__(grid, sigma, dt, measurement)
         self.integrator = integrator or Integrator.build(grid)
         self.G = grid.gradient_matrix.tocsr()
         if self.projector is not None:
@@ -270,34 +279,66 @@ class ReferenceGradientFilter(_DenseGridFilter):
         from ``p_KDE``).
         """
         assert self.kf is not None, "call initialize first"
-        r = self.measurement.gradient_variance(p_kde)
-        if self.engine == "filterpy":
-            fg, u0 = self.transition(v_applied)
-            fg, q, y, r, u = self._project_model(fg, grad_kde, r, u0)
-            self.kf.predict(fg, q, u)
-        else:
-            # Same equations, grouped to avoid forming F_g: with Z = G^+ P G^+T,
-            # F_g P F_g^T = G (F Z F^T) G^T and F_g x = G F (G^+ x).
-            kf = self.kf
-            f = transition_dense(self.operator.matrix(v_applied), self.dt)
-            pinv = self.integrator.pinv
-            z = pinv @ kf.P @ pinv.T
-            fz = f @ z @ f.T
-            kf.P = self.G @ (self.G @ fz).T
-            kf.P[np.diag_indices_from(kf.P)] += self.q
-            kf.x = self.G @ (f @ (pinv @ kf.x + 1.0 / self.grid.area))
-            y = grad_kde
-            if self.projector is not None:
-                pi = self.projector
-                kf.P = pi @ kf.P @ pi.T
-                kf.x = pi @ kf.x
-                _, _, y, r, _ = self._project_model(pi, grad_kde, r)
-            kf.x_prior, kf.P_prior = kf.x.copy(), kf.P.copy()
+        y, r = self._predict(grad_kde, self.measurement.gradient_variance(p_kde), v_applied)
         self.kf.update(y, r)
         return self.estimate
+
+    def _predict(
+        self, grad_kde: np.ndarray, r: np.ndarray, v_applied: VelocityField
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The prediction under ``v_applied``; returns the measurement and its covariance
+        for the update (projected when the band is limited).
+
+        The equations of :meth:`transition` grouped to avoid forming ``F_g``: with ``Z =
+        G^+ P G^+T``, ``F_g P F_g^T = G (F Z F^T) G^T`` and ``F_g x = G F (G^+ x)``.
+        """
+        kf = self.kf
+        assert kf is not None
+        f = transition_dense(self.operator.matrix(v_applied), self.dt)
+        pinv = self.integrator.pinv
+        z = pinv @ kf.P @ pinv.T
+        fz = f @ z @ f.T
+        kf.P = self.G @ (self.G @ fz).T
+        kf.P[np.diag_indices_from(kf.P)] += self.q
+        kf.x = self.G @ (f @ (pinv @ kf.x + 1.0 / self.grid.area))
+        y = grad_kde
+        if self.projector is not None:
+            pi = self.projector
+            kf.P = pi @ kf.P @ pi.T
+            kf.x = pi @ kf.x
+            _, _, y, r, _ = self._project_model(pi, grad_kde, r)
+        kf.x_prior, kf.P_prior = kf.x.copy(), kf.P.copy()
+        return y, r
 
     @property
     def estimate(self) -> np.ndarray:
         """``q_hat``, shape ``(2, ny, nx)``."""
         assert self.kf is not None
         return self.kf.x.reshape(2, *self.grid.shape)
+
+
+class FilterpyDensityFilter(ReferenceDensityFilter):
+    """:class:`ReferenceDensityFilter` with filterpy's ``KalmanFilter`` doing the algebra."""
+
+    kalman = FilterpyKalman
+
+
+class FilterpyGradientFilter(ReferenceGradientFilter):
+    """:class:`ReferenceGradientFilter` with filterpy's ``KalmanFilter`` doing the
+    algebra; its prediction forms ``F_g`` and ``u`` (:meth:`transition`) and hands them
+    to filterpy.
+    """
+
+    kalman = FilterpyKalman
+
+    def _predict(
+        self, grad_kde: np.ndarray, r: np.ndarray, v_applied: VelocityField
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``F_g``, ``u`` and the band-limited model of :meth:`_project_model`, then
+        filterpy's prediction.
+        """
+        assert self.kf is not None
+        fg, u0 = self.transition(v_applied)
+        fg, q, y, r, u = self._project_model(fg, grad_kde, r, u0)
+        self.kf.predict(fg, q, u)
+        return y, r
