@@ -293,13 +293,14 @@ CONFIG_PREFIX = "cfg:"
 
 def varied(rows: list[dict[str, Any]]) -> list[str]:
     """Config keys (without the prefix) whose values differ between the rows, leaving
-    out the logging and progress keys.
+    out the logging and progress keys and the observers' nodes (their values are the
+    public keys', such as ``observers.swarm.seed: ${seed}``).
     """
     keys = sorted({k for r in rows for k in r if k.startswith(CONFIG_PREFIX)})
     out = []
     for k in keys:
         key = k[len(CONFIG_PREFIX) :]
-        if key.startswith("log."):
+        if key.startswith(("log.", "observers.")):
             continue
         if len({repr(r.get(k)) for r in rows}) > 1:
             out.append(key)

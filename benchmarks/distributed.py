@@ -150,7 +150,7 @@ def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
     filters, the centralised reference filters, network metrics, per-robot law),
     median over ``steps`` steps after two untimed ones.
     """
-    from benchmarks.suite import compose_config
+    from harness.api import compose as compose_config
     from harness.build import build
     from harness.loop import ClosedLoop
 

@@ -20,7 +20,7 @@ import argparse
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from benchmarks.suite import compose_config
+from harness.api import compose as compose_config
 from harness.build import build
 from harness.filters.engines import LocalEngine
 from harness.loop import ClosedLoop

@@ -33,7 +33,7 @@ from threadpoolctl import ThreadpoolController
 from analysis.load import RunLog, load_run
 from harness.build import Experiment, build
 from harness.loop import ClosedLoop
-from harness.observers import RunContext
+from harness.observers import RunContext, Status
 from harness.records import StepRecord
 from harness.run import run as run_to_log
 
@@ -153,7 +153,7 @@ def simulate(
     Raises:
         harness.checks.ConfigError: for a value that is not allowed (at the call).
         harness.fokker_planck.NumericalError: while iterating, at the step where
-            :func:`run` would end ``diverged`` for a non-finite estimate, velocity or
+            :func:`run` would end ``diverged`` for a non-finite estimate, command or
             metric or a mass drift.
     """
     cfg = _config(config)
@@ -171,19 +171,32 @@ def _steps(parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]
     """
     watching = [o for o in parts.observers.values() if getattr(o, "computes", False)]
     context = RunContext(Path.cwd())
-    for observer in watching:
-        observer.initialize(context)
+    parts.spent.append(True)
     rng = np.random.default_rng(parts.seed)
     loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, parts.dt, rng)
     blas = ThreadpoolController()
-    for n in range(parts.steps + 1):
-        # as in the run's loop, only while a step computes (not while the caller holds it):
-        # one BLAS thread, and numerical warnings from the harness are errors
-        with blas.limit(limits=1), warnings.catch_warnings():
-            warnings.simplefilter("error", spla.MatrixRankWarning)
-            warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
-            rec = loop.start() if n == 0 else loop.step()
-            values: Metrics = {}
-            for observer in watching:
-                observer.handle(rec, values)
-        yield (copy_.deepcopy(rec) if copy else rec), values
+    state, reason = "aborted", "the caller stopped iterating"
+    started: list = []
+    try:
+        for n in range(parts.steps + 1):
+            # as in the run's loop, only while a step computes (not while the caller holds
+            # it): one BLAS thread, and numerical warnings from the harness are errors
+            with blas.limit(limits=1), warnings.catch_warnings():
+                warnings.simplefilter("error", spla.MatrixRankWarning)
+                warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
+                if n == 0:
+                    for observer in watching:
+                        started.append(observer)
+                        observer.initialize(context)
+                rec = loop.start() if n == 0 else loop.step()
+                values: Metrics = {}
+                for observer in watching:
+                    observer.handle(rec, values)
+            yield (copy_.deepcopy(rec) if copy else rec), values
+        state, reason = "completed", ""
+    except Exception as err:
+        state, reason = "aborted", f"{type(err).__name__}: {err}"
+        raise
+    finally:
+        for observer in reversed(started):
+            observer.finalize(Status(state, reason, 0.0))

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import inspect
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import hydra.utils
@@ -184,6 +184,8 @@ class Experiment:
         keys: The public config key of each observer parameter
             (``"observers.live.port" -> "log.live_port"``), for errors raised when the
             run starts.
+        spent: Set by :func:`harness.run.run`: the components keep their state, so an
+            experiment runs once.
     """
 
     grid: Grid
@@ -201,12 +203,7 @@ class Experiment:
     identity: RunIdentity
     disk: DiskNeed
     keys: dict[str, str]
-
-    @property
-    def robots(self) -> int:
-        """The plant's number of robots (0 without robots)."""
-        n = getattr(self.plant, "n", 0) if self.plant.has_robots else 0
-        return int(n or 0)
+    spent: list[bool] = field(default_factory=list, compare=False, repr=False)
 
 
 def build(cfg: DictConfig) -> Experiment:
@@ -255,6 +252,6 @@ def build(cfg: DictConfig) -> Experiment:
         dt=float(cfg.sim.dt),
         steps=steps,
         identity=identity,
-        disk=disk_need(cfg, grid, robots),
+        disk=disk_need(watching, robots, keys, steps),
         keys=keys,
     )  # fmt: skip

@@ -330,26 +330,10 @@ def _public_key(cfg: DictConfig, group: str, name: str) -> str:
     return match.group(1) if match else f"{group}.{name}"
 
 
-LOG_BYTES_PER_STEP = 400
-"""Bytes of one ``/metrics`` message with its record header (JSON of 12 numbers)."""
-
-
-def log_estimate(cfg: DictConfig, grid: Grid, robots: int) -> int:
-    """Upper estimate of the log's size (bytes) before compression: per step a metrics
-    message; every ``log.field_every`` steps nine float32 grid fields (``p_true``,
-    ``p_kde``, ``p_hat``, two gradients and the velocity, two components each for
-    those); every ``log.positions_every`` steps ``robots`` float32 points (12 bytes).
-    """
-    steps = round(cfg.sim.t_final / cfg.sim.dt)
-    fields = (steps // cfg.log.field_every + 2) * (9 * 4 * grid.size + 9 * 200)
-    points = (steps // cfg.log.positions_every + 2) * (12 * robots + 200) if robots else 0
-    return steps * LOG_BYTES_PER_STEP + fields + points
-
-
 @dataclass(frozen=True)
 class DiskNeed:
-    """The log's size estimate (bytes, :func:`log_estimate`), the run's steps, and the
-    key to name when the log does not fit (``key=value``).
+    """The size (bytes) the run's files will need, the run's steps, and the key to name
+    when they do not fit (``key=value``).
     """
 
     nbytes: int
@@ -358,15 +342,23 @@ class DiskNeed:
     steps: int
 
 
-def disk_need(cfg: DictConfig, grid: Grid, robots: int) -> DiskNeed:
-    """The log's size estimate, naming ``log.positions_every`` when the robots'
-    positions are most of it, else ``log.field_every``.
+def disk_need(observers: dict[str, Any], robots: int, keys: dict[str, str], steps: int) -> DiskNeed:
+    """What the observers that write files say they will write: the sum of their
+    ``disk_bytes(robots) -> (bytes, parameter)``, naming the public key of the parameter
+    of the largest (``log.positions_every`` when the robots' positions are most of the
+    log).
     """
-    need = log_estimate(cfg, grid, robots)
-    steps = round(cfg.sim.t_final / cfg.sim.dt)
-    points = robots * 12 * steps / cfg.log.positions_every
-    key = "log.positions_every" if points > need / 2 else "log.field_every"
-    return DiskNeed(need, key, OmegaConf.select(cfg, key), steps)
+    parts = []
+    for name, observer in observers.items():
+        estimate = getattr(observer, "disk_bytes", None)
+        if estimate is not None:
+            nbytes, param = estimate(robots)
+            parts.append((nbytes, name, param, getattr(observer, param, None)))
+    if not parts:
+        return DiskNeed(0, "observers", None, steps)
+    _, name, param, value = max(parts)
+    key = keys.get(f"observers.{name}.{param}", f"observers.{name}.{param}")
+    return DiskNeed(sum(p[0] for p in parts), key, value, steps)
 
 
 def check_disk(need: DiskNeed, out_dir: Path) -> int:

@@ -246,7 +246,7 @@ class FieldLaw:
             class that defines :meth:`at_cells` itself, or inherits both :meth:`field`
             and :meth:`at_cells` (a subclass that redefines :meth:`field` without
             :meth:`at_cells` would move each robot by its parent's law, so it is false
-            there). Set when the class is created.
+            there). Set when the class is created, unless the class body sets it.
     """
 
     gives_field: ClassVar[bool] = True
@@ -256,6 +256,8 @@ class FieldLaw:
     def __init_subclass__(cls, **kwargs: object) -> None:
         super().__init_subclass__(**kwargs)
         defines = vars(cls)
+        if "own_estimates" in defines:  # the class says so itself
+            return
         if "at_cells" in defines:
             cls.own_estimates = True
         elif "field" in defines:

@@ -438,16 +438,21 @@ def _set_aside(log: Path) -> Path:
     return target
 
 
-def _child(cfg: Experiment, out: Path) -> None:
-    """The job's own process: run it and record the outcome; exit status 0 after any
-    recorded outcome (a killed process has none).
+_PENDING: list[Experiment] = []
+"""The build a forked job runs: the child takes it, the parent drops it once the child
+has started (the parent keeping it would double the pages the child writes to)."""
+
+
+def _child(out: Path) -> None:
+    """The job's own process: run the pending build and record the outcome; exit status
+    0 after any recorded outcome (a killed process has none).
     """
     with contextlib.suppress(OSError):  # the out-of-memory killer picks a job, not the sweep
         Path("/proc/self/oom_score_adj").write_text("500")
-    # one core per job: the sweep runs a job per core, so the per-robot kernels stay serial
+    # one core per job: the sweep runs a job per core, so the compiled loops stay serial
     numba.set_num_threads(1)
     try:
-        result = run(cfg, out, overwrite=True)
+        result = run(_PENDING.pop(), out, overwrite=True)
     except (KeyboardInterrupt, Terminated) as err:
         write_status(out, state="aborted", reason=f"interrupted: {err}".strip(), pid=0)
         os._exit(3)
@@ -459,13 +464,15 @@ def _child(cfg: Experiment, out: Path) -> None:
     os._exit(0)
 
 
-def _run_isolated(cfg: Experiment, out: Path) -> int:
-    """Run :func:`_child` in a forked process and wait for it; its exit code (negative:
-    killed by that signal). Signals to this process are passed on to the job.
+def _run_isolated(out: Path) -> int:
+    """Run :func:`_child` on the pending build in a forked process and wait for it; its
+    exit code (negative: killed by that signal). Signals to this process are passed on
+    to the job.
     """
     ctx = multiprocessing.get_context("fork")
-    proc = ctx.Process(target=_child, args=(cfg, out), daemon=False)
-    proc.start()
+    proc = ctx.Process(target=_child, args=(out,), daemon=False)
+    proc.start()  # the child holds its copy of the pending build from here on
+    _PENDING.clear()
     assert proc.pid is not None
     write_status(out, pid=proc.pid)
     previous = {}
@@ -509,7 +516,7 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
         else:
             why = f"the log's status is {check.state}"
         try:
-            built = build(cfg)
+            _PENDING[:] = [build(cfg)]
         except ConfigError as err:
             print(err, file=sys.stderr)
             write_status(out, state="invalid", reason=str(err), pid=0, **ident)
@@ -520,12 +527,12 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
         runs = _int(read_status(out).get("runs"), 0) + 1
         write_status(out, state="running", runs=runs, reason="", rerun_reason=why, pid=0, **ident)
         try:
-            code = _run_isolated(built, out)  # the child inherits the build
+            code = _run_isolated(out)  # the child inherits the build
         except OSError as err:  # no process could be forked: run here
             print(f"job {job}: cannot fork ({err}); running in the worker", file=sys.stderr)
             code = 0
             try:
-                result = run(built, out, overwrite=True)
+                result = run(_PENDING.pop(), out, overwrite=True)
                 write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
             except Exception as err2:
                 write_status(out, state="aborted", reason=f"{type(err2).__name__}: {err2}")

@@ -62,6 +62,9 @@ from harness.records import StepRecord
 if TYPE_CHECKING:
     from harness.live import LiveServer
 
+LOG_FILE = "run.mcap"
+"""The log's file name in the run directory."""
+
 METRIC_KEYS = (
     "t",
     "phi_l2",
@@ -181,11 +184,10 @@ class McapLogger:
         identity: The config and provenance records (run-time argument).
         field_every: Steps between field messages (``>= 1``).
         positions_every: Steps between position messages (``>= 1``).
-        file: The log's file name in the run directory.
 
-    :meth:`initialize` opens the file (and hands every message to the run's live
-    servers, ``RunContext.publishers``: same topics, schemas and bytes; the file is
-    written exactly as without them) and writes the target; the first :meth:`handle`
+    :meth:`initialize` opens ``run.mcap`` in the run directory (and hands every message
+    to the run's live servers, ``RunContext.publishers``: same topics, schemas and
+    bytes; the file is written exactly as without them) and writes the target; the first :meth:`handle`
     writes the ``theory`` record the observers before it filled.
     """
 
@@ -197,24 +199,38 @@ class McapLogger:
         identity: RunIdentity,
         field_every: int,
         positions_every: int,
-        file: str = "run.mcap",
     ) -> None:
         self.grid, self.target, self.identity = grid, target, identity
         self.field_every = integer("field_every", field_every, 1)
         self.positions_every = integer("positions_every", positions_every, 1)
         self.total_steps = steps
-        self.file = file
-        self.path = Path(file)
+        self.path = Path(LOG_FILE)
         self.live: LiveServer | None = None
         self.run: RunContext | None = None
         self._opened = False
         self._finished = False
         self.seconds = 0.0  # wall time spent logging steps (s)
 
+    BYTES_PER_STEP = 400
+    """Bytes of one ``/metrics`` message with its record header (JSON of 24 numbers)."""
+
+    def disk_bytes(self, robots: int) -> tuple[int, str]:
+        """Upper estimate of the log's size (bytes) before compression, and the
+        parameter that sets most of it: per step a metrics message; every
+        ``field_every`` steps nine float32 grid fields (``p_true``, ``p_kde``,
+        ``p_hat``, two gradients and the velocity, two components each for those);
+        every ``positions_every`` steps ``robots`` float32 points (12 bytes).
+        """
+        steps = self.total_steps
+        fields = (steps // self.field_every + 2) * (9 * 4 * self.grid.size + 9 * 200)
+        points = (steps // self.positions_every + 2) * (12 * robots + 200) if robots else 0
+        need = steps * self.BYTES_PER_STEP + fields + points
+        return need, "positions_every" if points > need / 2 else "field_every"
+
     def initialize(self, run: RunContext) -> None:
-        """Open ``run.out_dir / file`` and write the target."""
+        """Open ``run.out_dir / run.mcap`` and write the target."""
         self.run = run
-        self.open(run.out_dir / self.file, run.publishers[0] if run.publishers else None)
+        self.open(run.out_dir / LOG_FILE, run.publishers[0] if run.publishers else None)
         self.write_target(self.target.p)
 
     def open(self, path: Path, live: LiveServer | None = None) -> None:

@@ -137,7 +137,7 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
 
     Args:
         cfg: The config, or the experiment built from it (built once: a caller that
-            built to check hands its build on).
+            built to check hands its build on). An experiment runs once.
         out_dir: The run directory.
         overwrite: Replace an existing ``run.mcap`` (a sweep's resume decides this);
             by default an existing log is refused.
@@ -146,12 +146,17 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
         ConfigError: before anything is written, for a value that is not allowed, an
             existing log in ``out_dir``, a log larger than the free disk space, or an
             observer that cannot start (a live port in use).
+        ValueError: for an experiment that has run already.
         DiskFull: when the disk fills during the run (the log holds every chunk
             written before; status ``aborted`` when it could still be finalised).
         KeyboardInterrupt, Terminated, Exception: re-raised after the log is
             finalised with status ``aborted``.
     """
     exp = cfg if isinstance(cfg, Experiment) else build(cfg)
+    if exp.spent:
+        raise ValueError(
+            "this Experiment has run already (its components keep their state): build it again"
+        )
     out_dir = Path(out_dir)
     log_path = out_dir / "run.mcap"
     if not overwrite and (log_path.exists() or log_path.is_symlink()):
@@ -161,6 +166,7 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
             "a directory without a run.mcap (it holds one already: not overwritten)",
         )
     check_disk(exp.disk, out_dir)
+    exp.spent.append(True)
     stop = StopRequest()
     stop.install()  # before the log exists: a signal from here on finalises it
     try:
@@ -174,22 +180,31 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
 def _initialize(exp: Experiment, context: RunContext) -> list[Observer]:
     """Initialise the observers in order; the ones started, for :func:`_finalize`.
 
+    An observer whose ``initialize`` fails is finalised with the ones before it (so a
+    logger that could open its file but not write to it still closes it): ``finalize``
+    must be safe after a partial ``initialize``.
+
     Raises:
         ConfigError: for an observer that refuses to start (a live port in use), after
-            finalising the ones already started.
+            finalising the ones already started (nothing is logged when it comes before
+            the logger, as the live view does).
     """
     started: list[Observer] = []
     for name, observer in exp.observers.items():
+        started.append(observer)
         try:
             observer.initialize(context)
         except ParameterError as err:
-            _finalize(started, Status("aborted", f"observer {name} could not start", 0.0))
+            _finalize(started, Status("aborted", f"observer {name} could not start: {err}", 0.0))
             key = exp.keys.get(f"observers.{name}.{err.name}", f"observers.{name}.{err.name}")
             raise ConfigError(key, err.value, err.allowed) from None
-        except BaseException:
-            _finalize(started, Status("aborted", f"observer {name} could not start", 0.0))
+        except BaseException as err:
+            why = f"observer {name} could not start: {type(err).__name__}: {err}"
+            try:
+                _finalize(started, Status("aborted", why, 0.0))
+            except BaseException:  # the first error is the one to report
+                pass
             raise
-        started.append(observer)
     return started
 
 
@@ -222,10 +237,10 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest) -> RunResult:
     started: list[Observer] = []
     watching = list(exp.observers.values())
     try:
-        started = _initialize(exp, context)
         with threadpool_limits(1), warnings.catch_warnings():
             warnings.simplefilter("error", spla.MatrixRankWarning)
             warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
+            started = _initialize(exp, context)
             stop.interruptible = True
             rec = loop.start()
             stop.interruptible = False

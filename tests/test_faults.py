@@ -276,7 +276,8 @@ def test_log_estimate_bounds_the_log_and_a_full_disk_is_refused(tmp_path, compos
     cfg = compose(["grid.n=10", "agents.n=300", "sim.t_final=0.4", "log.progress=off"])
     run(cfg, tmp_path / "a")
     built = build(cfg)
-    assert checks.log_estimate(cfg, built.grid, 300) >= (tmp_path / "a" / "run.mcap").stat().st_size
+    estimate, _ = built.observers["log"].disk_bytes(300)
+    assert estimate >= (tmp_path / "a" / "run.mcap").stat().st_size
     monkeypatch.setattr(checks.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 1000))
     with pytest.raises(ConfigError, match=r"log.*would need about"):
         run(cfg, tmp_path / "b")

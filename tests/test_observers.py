@@ -15,7 +15,7 @@ from harness.jobs import CheckCallback, checked
 from harness.observers import DivergenceGuard, RunContext, Status
 from harness.run import run
 
-ORDER = ["metrics", "swarm", "guard", "estimator", "live", "log", "progress"]
+ORDER = ["metrics", "swarm", "estimator", "guard", "live", "log", "progress"]
 
 
 def test_default_observers_are_built_in_config_order(compose, smoke):

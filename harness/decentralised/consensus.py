@@ -73,7 +73,7 @@ neighbour in one consensus round. Per robot per step that is ``m deg_i`` message
 ``m deg_i F M`` floats or ``8 m deg_i F M`` bytes; :func:`message_counts` reports the
 mean over robots (with a broadcast medium one transmission per round would do).
 
-The compiled kernels state their plain numpy equivalents in their docstrings; tests
+The compiled loops state their plain numpy equivalents in their docstrings; tests
 compare.
 """
 

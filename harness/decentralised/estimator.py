@@ -31,7 +31,7 @@ from harness.decentralised.gradient import GRADIENTS, GridGradient
 from harness.decentralised.graph import algebraic_connectivity, communication_graph
 from harness.decentralised.metrics import network_figures
 from harness.filters.common import FilterSettings, MeasurementModel
-from harness.filters.engines import FilterEngine
+from harness.filters.engines import LocalEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.records import Estimate, RobotEstimates, StepInput
@@ -252,7 +252,7 @@ class DistributedEstimator:
             rounds=rounds, gain=gain, gradient=gradient, initial_rounds=initial_rounds,
         )  # fmt: skip
         measurement = MeasurementModel(self.n_robots, h, settings)
-        self.central = FilterEngine.named("local")(grid, model.sigma, dt, measurement)
+        self.central = LocalEngine(grid, model.sigma, dt, measurement)
         self._steps = 0
         self._connectivity = float("nan")
 
@@ -302,7 +302,13 @@ class DistributedEstimator:
                 "a plant with robots (plant=agents): every robot of estimator=distributed "
                 "estimates and moves on its own",
             )  # fmt: skip
-        if not getattr(control, "own_estimates", False):
+        if not control.gives_field:
+            raise Incompatible(
+                "control", type(control).__name__,
+                "a law with a velocity field for estimator=distributed (the filters' "
+                "transport model A(v) is the field's)",
+            )  # fmt: skip
+        if not control.own_estimates:
             raise Incompatible(
                 "control", type(control).__name__,
                 "a law that moves each robot by the law of its own estimate (a FieldLaw "
