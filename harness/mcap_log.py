@@ -187,8 +187,8 @@ class McapLogger:
 
     :meth:`initialize` opens ``run.mcap`` in the run directory (and hands every message
     to the run's live servers, ``RunContext.publishers``: same topics, schemas and
-    bytes; the file is written exactly as without them) and writes the target; the first :meth:`handle`
-    writes the ``theory`` record the observers before it filled.
+    bytes; the file is written exactly as without them) and writes the target; the
+    first :meth:`handle` writes the ``theory`` record the observers before it filled.
     """
 
     def __init__(
