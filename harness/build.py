@@ -74,6 +74,15 @@ def _first_line(err: BaseException) -> str:
     return f"{type(err).__name__}: {text.splitlines()[0]}" if text else type(err).__name__
 
 
+def members(protocol: type) -> list[str]:
+    """The attributes and methods a protocol asks for (``__call__`` included)."""
+    names = list(getattr(protocol, "__annotations__", {}))
+    for name, value in vars(protocol).items():
+        if callable(value) and (not name.startswith("_") or name == "__call__"):
+            names.append(name)
+    return names
+
+
 def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
     """Instantiate the component of ``group`` (a dotted path for an observer,
     ``observers.log``) with its run-time arguments.
@@ -113,7 +122,9 @@ def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
         raise ConfigError(group, target, _first_line(err)) from None
     protocol = PROTOCOLS[group.split(".")[0]]
     if not isinstance(obj, protocol):
-        raise ConfigError(f"{group}._target_", target, f"must implement {protocol.__name__}")
+        missing = ", ".join(m for m in members(protocol) if not hasattr(obj, m))
+        allowed = f"must implement {protocol.__name__} (missing: {missing})"
+        raise ConfigError(f"{group}._target_", target, allowed)
     return obj
 
 
