@@ -122,8 +122,8 @@ def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
         raise ConfigError(group, target, _first_line(err)) from None
     protocol = PROTOCOLS[group.split(".")[0]]
     if not isinstance(obj, protocol):
-        missing = ", ".join(m for m in members(protocol) if not hasattr(obj, m))
-        allowed = f"must implement {protocol.__name__} (missing: {missing})"
+        lacks = ", ".join(m for m in members(protocol) if not hasattr(obj, m))
+        allowed = f"must implement {protocol.__name__} (missing: {lacks})"
         raise ConfigError(f"{group}._target_", target, allowed)
     return obj
 
