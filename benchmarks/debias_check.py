@@ -14,7 +14,7 @@ Runs the paper's closed loop (agents, KDE, both filters, paper's law; the compos
 Monte-Carlo band of N robots drawn independently from ``p_*``), and ``||p_hat - p_*||``
 and ``||p_hat - K_h * p_*||``.
 
-The issue's bar: the debiased loop within 1.3 times its ``swarm_l2`` floor by
+The bar: the debiased loop within 1.3 times its ``swarm_l2`` floor by
 t = 60 s, the paper's loop above 2 times (N = 16384).
 
 ``--certificate`` prints the linearised stability facts of docs/debias.md for the

@@ -47,7 +47,7 @@ def report(name: str, value_ms: float, target_ms: float | None) -> bool:
 
 
 def bench_kde_agents() -> bool:
-    """KDE + agent step (issue: foundation)."""
+    """KDE + agent step."""
     print("KDE (density + gradient) and agent step, n = 30, h = 0.04:")
     g = Grid.square(30)
     rng = np.random.default_rng(0)
@@ -106,7 +106,7 @@ def bench_fokker_planck() -> bool:
 def closed_loop_rate(n: int, engine: str, steps: int) -> float:
     """Closed-loop steps per second: agents, KDE, both filters, paper's law, reference;
     the inverse of the median wall time of a step over ``steps`` steps after the first
-    (the median, as the issues ask: a step that the host delays does not move it)."""
+    (the median: a step that the host delays does not move it)."""
     from harness.api import compose
     from harness.build import build
     from harness.loop import ClosedLoop
@@ -127,7 +127,7 @@ def closed_loop_rate(n: int, engine: str, steps: int) -> float:
 
 
 def bench_filters() -> bool:
-    """Closed loop with the paper's filters (issue: filters)."""
+    """Closed loop with the paper's filters."""
     print("Closed loop, N = 1024, both filters (steps per second = 1 / median step time):")
     fast30 = closed_loop_rate(30, "local", 2000)
     slow30 = closed_loop_rate(30, "filterpy", 3)
@@ -155,7 +155,7 @@ def bench_filters() -> bool:
 
 
 def bench_sweeps() -> bool:
-    """Parallel efficiency of a two-job sweep and the cost of logging (issue: sweeps)."""
+    """Parallel efficiency of a two-job sweep and the cost of logging."""
     import subprocess
     import sys
     import tempfile

@@ -108,8 +108,8 @@ class Density(Protocol):
     :class:`ExactCellMasses`): ``smoothed(grid, h, mirror)``, ``K_h * p`` at the cell
     centres, and ``cell_masses(grid)``, the mass of every cell. Without them the swarm
     metrics and the debiased laws use approximations from the cell values
-    (:func:`harness.swarm_metrics.smoothed_density`,
-    :func:`harness.swarm_metrics.cell_masses`). A subclass that changes the density
+    (:func:`harness.swarm_metrics.smoothed_density_cells`,
+    :func:`harness.swarm_metrics.cell_masses_midpoint`). A subclass that changes the density
     redefines them.
     """
 
