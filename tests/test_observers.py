@@ -145,3 +145,60 @@ def test_simulate_runs_only_the_observers_that_compute(compose, smoke, tmp_path,
     assert list(tmp_path.iterdir()) == []  # nothing written
     _, values = steps[-1]
     assert np.isfinite(values["phat_target_l2"])
+
+
+def test_a_multi_seed_study_is_not_split_by_the_observers_seed():
+    """``observers.swarm.seed: ${seed}`` varies with the seed in the logged config; the
+    sweep analysis reads the public key only."""
+    from analysis.sweep import mixed, varied
+
+    rows = [
+        {"cfg:agents.n": n, "cfg:seed": s, "cfg:observers.swarm.seed": s}
+        for n in (256, 1024)
+        for s in (0, 1)
+    ]
+    assert varied(rows) == ["agents.n", "seed"]
+    assert mixed(rows, ["agents.n"]) == []
+
+
+def test_an_experiment_runs_once(compose, smoke, tmp_path):
+    exp = build(compose(list(smoke)))
+    assert run(exp, tmp_path / "a").state == "completed"
+    with pytest.raises(ValueError, match="has run already"):
+        run(exp, tmp_path / "b")
+
+
+def test_a_logger_that_cannot_write_at_the_start_still_closes_its_log(
+    compose, smoke, tmp_path, monkeypatch
+):
+    import errno
+
+    import harness.mcap_log
+    from analysis.load import load_run
+    from harness.run import DiskFull
+
+    def full(self, p):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(harness.mcap_log.McapLogger, "write_target", full)
+    with pytest.raises(DiskFull):
+        run(compose(list(smoke)), tmp_path)
+    log = load_run(tmp_path)
+    assert log.state == "aborted"
+    assert "could not start" in log.metadata["status"]["reason"]
+
+
+def test_an_explicit_own_estimates_is_kept():
+    from harness.control import PaperControl
+
+    class Declared(PaperControl):
+        own_estimates = True
+
+        def field(self, p_hat, q_hat):
+            return super().field(p_hat, q_hat)
+
+    class Undeclared(PaperControl):
+        def field(self, p_hat, q_hat):
+            return super().field(p_hat, q_hat)
+
+    assert Declared.own_estimates and not Undeclared.own_estimates
