@@ -33,6 +33,7 @@ from threadpoolctl import ThreadpoolController
 from analysis.load import RunLog, load_run
 from harness.build import Experiment, build
 from harness.loop import ClosedLoop
+from harness.mcap_log import METRIC_KEYS
 from harness.observers import RunContext, Status
 from harness.records import StepRecord
 from harness.run import run as run_to_log
@@ -55,7 +56,7 @@ command line (:mod:`experiments.closed_loop`) reads its configs from here too.""
 
 Metrics = dict[str, float | None]
 """One step's metrics, keyed as :data:`harness.mcap_log.METRIC_KEYS` (None where a metric
-is not evaluated at that step; absent where it does not apply to the loop)."""
+is not evaluated at that step or does not apply to the loop)."""
 
 
 def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> DictConfig:
@@ -192,7 +193,8 @@ def _steps(parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]
                 values: Metrics = {}
                 for observer in watching:
                     observer.handle(rec, values)
-            yield (copy_.deepcopy(rec) if copy else rec), values
+            # every key of the log's /metrics, None where no observer gave it (as logged)
+            yield (copy_.deepcopy(rec) if copy else rec), {**dict.fromkeys(METRIC_KEYS), **values}
         state, reason = "completed", ""
     except Exception as err:
         state, reason = "aborted", f"{type(err).__name__}: {err}"
