@@ -12,6 +12,7 @@ into a :class:`~harness.checks.ConfigError` that names the full key.
 
 from __future__ import annotations
 
+import functools
 import inspect
 import re
 from dataclasses import dataclass, field
@@ -39,7 +40,7 @@ from harness.components import Control, Density, Estimator, Incompatible, Parame
 from harness.densities import Target
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.identity import RunIdentity, identify
+from harness.identity import RunIdentity, resolved
 from harness.observers import Observer
 
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z_][\w.]*)\}$")
@@ -68,6 +69,17 @@ def public_key(cfg: DictConfig, group: str, name: str) -> str:
     return match.group(1) if match else f"{group}.{name}"
 
 
+def public_keys(cfg: DictConfig, group: str) -> dict[str, str]:
+    """:func:`public_key` of every parameter of ``group`` (one pass over its node)."""
+    node = OmegaConf.select(cfg, group, default=None)
+    raw = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else {}
+    out = {}
+    for name, value in raw.items() if isinstance(raw, dict) else ():
+        match = _INTERPOLATION.match(value) if isinstance(value, str) else None
+        out[str(name)] = match.group(1) if match else f"{group}.{name!s}"
+    return out
+
+
 def _first_line(err: BaseException) -> str:
     """``Type: first line of the message`` of an exception."""
     text = str(err).strip()
@@ -83,9 +95,42 @@ def members(protocol: type) -> list[str]:
     return names
 
 
-def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
+def _nested(value: Any) -> bool:
+    """Whether a resolved value holds a config Hydra must instantiate itself (a nested
+    ``_target_`` or another of its ``_``-keys).
+    """
+    if isinstance(value, dict):
+        return any(str(k).startswith("_") or _nested(v) for k, v in value.items())
+    if isinstance(value, list):
+        return any(_nested(v) for v in value)
+    return False
+
+
+def _factory(plain: dict[str, Any]) -> Any:
+    """``_target_`` with its parameters bound, from resolved values: Hydra's
+    ``instantiate(..., _partial_=True)``, done directly when no parameter holds a nested
+    config (Hydra wraps the values in OmegaConf nodes again, about 5 ms a component,
+    which a test suite building thousands of configs pays many times over).
+
+    Raises:
+        InstantiationException: for a ``_target_`` that cannot be loaded.
+    """
+    params = {k: v for k, v in plain.items() if k != "_target_"}
+    if _nested(params):
+        return hydra.utils.instantiate(plain, _partial_=True, _convert_="all")
+    try:
+        target = hydra.utils.get_object(str(plain["_target_"]))
+    except Exception as err:
+        raise InstantiationException(str(err)) from err
+    return functools.partial(target, **params)
+
+
+def component(
+    cfg: DictConfig, group: str, values: dict[str, Any] | None = None, **runtime: Any
+) -> Any:
     """Instantiate the component of ``group`` (a dotted path for an observer,
-    ``observers.log``) with its run-time arguments.
+    ``observers.log``) with its run-time arguments, from ``values`` (the config
+    resolved once, :func:`harness.identity.resolved`) when given.
 
     Raises:
         ConfigError: for a missing or unloadable ``_target_``, a parameter the class
@@ -95,8 +140,11 @@ def component(cfg: DictConfig, group: str, **runtime: Any) -> Any:
     node = OmegaConf.select(cfg, group, default=None)
     if not isinstance(node, DictConfig) or "_target_" not in node:
         raise ConfigError(group, node, "a component config with _target_ (see docs/extending.md)")
+    plain: Any = values if values is not None else OmegaConf.to_container(node, resolve=True)
+    for part in group.split(".") if values is not None else ():
+        plain = plain[part]
     try:
-        factory = hydra.utils.instantiate(node, _partial_=True, _convert_="all")
+        factory = _factory(plain)
     except InstantiationException as err:
         cause = err.__cause__ or err
         first = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
@@ -141,7 +189,9 @@ def _named(factory_target: Any, runtime: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in runtime.items() if k in params}
 
 
-def observers(cfg: DictConfig, **runtime: Any) -> dict[str, Observer]:
+def observers(
+    cfg: DictConfig, values: dict[str, Any] | None = None, **runtime: Any
+) -> dict[str, Observer]:
     """The observers of ``cfg.observers``, in config order, each given the run-time
     arguments its constructor names (:mod:`harness.observers`).
 
@@ -164,7 +214,7 @@ def observers(cfg: DictConfig, **runtime: Any) -> dict[str, Observer]:
             target = hydra.utils.get_object(str(entry._target_))
         except Exception:
             target = None  # component() names the unloadable target
-        out[name] = component(cfg, group, **_named(target, runtime))
+        out[name] = component(cfg, group, values, **_named(target, runtime))
     return out
 
 
@@ -236,25 +286,27 @@ def build(cfg: DictConfig) -> Experiment:
     check_shared(cfg)
     grid = Grid.square(cfg.grid.n, cfg.grid.length)
     check_memory(cfg, grid)
-    target = target_on_grid(component(cfg, "target"), grid)
-    init = component(cfg, "init")
+    data = resolved(cfg)
+    target = target_on_grid(component(cfg, "target", data), grid)
+    init = component(cfg, "init", data)
     p0 = density_on_grid("init", init, grid)
     model = FokkerPlanck(grid, cfg.dynamics.sigma)
-    control = component(cfg, "control", target=target)
-    plant = component(cfg, "plant", grid=grid, model=model, init=init, control=control)
-    estimator = component(cfg, "estimator", grid=grid, model=model)
+    control = component(cfg, "control", data, target=target)
+    plant = component(cfg, "plant", data, grid=grid, model=model, init=init, control=control)
+    estimator = component(cfg, "estimator", data, grid=grid, model=model)
     _check_parts(plant, estimator, control)
     check_built(cfg, grid, target, control, plant, estimator)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
-    identity = identify(cfg)
+    identity = RunIdentity(data, int(cfg.seed))
     watching = observers(
-        cfg, grid=grid, target=target, control=control, plant=plant, steps=steps, identity=identity
-    )
+        cfg, data, grid=grid, target=target, control=control, plant=plant, steps=steps,
+        identity=identity,
+    )  # fmt: skip
     robots = int(getattr(plant, "n", 0) or 0) if plant.has_robots else 0
     keys = {
-        f"observers.{name}.{param}": public_key(cfg, f"observers.{name}", str(param))
+        f"observers.{name}.{param}": key
         for name in watching
-        for param in cfg.observers[name]
+        for param, key in public_keys(cfg, f"observers.{name}").items()
     }
     return Experiment(
         grid, target, init, p0, model, plant, estimator, control,

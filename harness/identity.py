@@ -13,8 +13,8 @@ import json
 import platform
 import subprocess
 import sys
-from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
@@ -34,18 +34,42 @@ PACKAGES = (
 )
 
 
-@dataclass(frozen=True)
 class RunIdentity:
-    """The log's ``config`` and ``provenance`` records.
+    """What the log's ``config`` and ``provenance`` records hold, made when the log
+    opens from the resolved config taken at build.
 
-    Attributes:
-        config_yaml: The resolved config (YAML).
-        provenance: Git commit and dirty flag, package versions, Python, seed, host,
-            start time and the config's hash ``config_sha256`` (strings).
+    Args:
+        data: The resolved config without ``hydra``, as plain containers (not modified).
+        seed: The run's seed.
     """
 
-    config_yaml: str
-    provenance: dict[str, str]
+    def __init__(self, data: dict[str, Any], seed: int) -> None:
+        self.data, self.seed = data, seed
+
+    @property
+    def config_yaml(self) -> str:
+        """The ``config`` record: the resolved config (YAML)."""
+        return OmegaConf.to_yaml(self.data)
+
+    @property
+    def config_sha256(self) -> str:
+        """The config's hash (:func:`config_hash`)."""
+        return _hash(self.data)
+
+    def provenance(self) -> dict[str, str]:
+        """The ``provenance`` record, taken when the run starts: git commit and dirty
+        flag, package versions, Python, seed, host, start time and ``config_sha256``.
+        """
+        return {**provenance(self.seed), "config_sha256": self.config_sha256}
+
+
+def resolved(cfg: DictConfig) -> dict[str, Any]:
+    """``cfg`` without ``hydra`` (:func:`run_config`), every interpolation resolved, as
+    plain containers.
+    """
+    data = OmegaConf.to_container(run_config(cfg), resolve=True)
+    assert isinstance(data, dict)
+    return {str(k): v for k, v in data.items()}
 
 
 def run_config(cfg: DictConfig) -> DictConfig:
@@ -61,10 +85,7 @@ def identify(cfg: DictConfig) -> RunIdentity:
     """The identity of a run of ``cfg`` (its ``hydra`` node, when present, is Hydra's,
     not the run's: left out).
     """
-    return RunIdentity(
-        OmegaConf.to_yaml(run_config(cfg), resolve=True),
-        {**provenance(cfg.seed), "config_sha256": config_hash(cfg)},
-    )
+    return RunIdentity(resolved(cfg), int(cfg.seed))
 
 
 def config_hash(cfg: DictConfig) -> str:
@@ -72,13 +93,17 @@ def config_hash(cfg: DictConfig) -> str:
     (:data:`harness.checks.PRESENTATION_KEYS`): equal exactly when two runs compute and
     log the same thing. Canonical JSON (sorted keys), so formatting never matters.
     """
-    data = OmegaConf.to_container(run_config(cfg), resolve=True)
-    assert isinstance(data, dict)
+    return _hash(resolved(cfg))
+
+
+def _hash(data: dict) -> str:
+    """:func:`config_hash` of a resolved config as plain containers (not modified)."""
+    kept = {key: dict(value) if isinstance(value, dict) else value for key, value in data.items()}
     for key in PRESENTATION_KEYS:
         block, _, leaf = key.partition(".")
-        if isinstance(data.get(block), dict):
-            data[block].pop(leaf, None)
-    text = json.dumps(data, sort_keys=True, default=repr, separators=(",", ":"))
+        if isinstance(kept.get(block), dict):
+            kept[block].pop(leaf, None)
+    text = json.dumps(kept, sort_keys=True, default=repr, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
 
 

@@ -257,7 +257,7 @@ class McapLogger:
             data=json.dumps(METRICS_SCHEMA).encode(),
         )
         self._writer.add_metadata("config", {"yaml": self.identity.config_yaml})
-        self._writer.add_metadata("provenance", self.identity.provenance)
+        self._writer.add_metadata("provenance", self.identity.provenance())
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         """Register a schema in the file (and keep it for the live view); its id."""
