@@ -22,9 +22,11 @@ import hydra.utils
 import numpy as np
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from harness import components
 from harness.checks import (
+    SHARED_BLOCKS,
     ConfigError,
     DiskNeed,
     check_built,
@@ -218,6 +220,20 @@ def observers(
     return out
 
 
+def resolve(cfg: DictConfig) -> dict[str, Any]:
+    """The config resolved once (:func:`harness.identity.resolved`), or the
+    :class:`ConfigError` of :func:`harness.checks.check_resolvable` naming the key that
+    does not resolve (or the missing shared block).
+    """
+    if all(block in cfg for block in SHARED_BLOCKS):
+        try:
+            return resolved(cfg)
+        except OmegaConfBaseException:
+            pass
+    check_resolvable(cfg)  # raises, naming the key
+    return resolved(cfg)
+
+
 def _check_parts(plant: Plant, estimator: Estimator, control: Control) -> None:
     """Each component's own ``check`` of the others (:mod:`harness.components`)."""
     for part in (plant, estimator, control):
@@ -281,12 +297,11 @@ def build(cfg: DictConfig) -> Experiment:
     Raises:
         ConfigError: for the first value that is not allowed.
     """
-    check_resolvable(cfg)
+    data = resolve(cfg)
     check_unread(cfg)
     check_shared(cfg)
     grid = Grid.square(cfg.grid.n, cfg.grid.length)
     check_memory(cfg, grid)
-    data = resolved(cfg)
     target = target_on_grid(component(cfg, "target", data), grid)
     init = component(cfg, "init", data)
     p0 = density_on_grid("init", init, grid)
