@@ -30,7 +30,7 @@ from omegaconf.errors import OmegaConfBaseException
 from harness.api import CONFIG_DIR
 from harness.checks import ConfigError, describe
 from harness.jobs import checked, finish_sweep, run_job
-from harness.run import DiskFull, run
+from harness.run import DiskFull, Terminated, run
 
 
 @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="closed_loop")
@@ -49,6 +49,9 @@ def main(cfg: DictConfig) -> None:
     except DiskFull as err:
         print(err, file=sys.stderr)
         sys.exit(1)
+    except Terminated as err:  # SIGINT, SIGTERM or SIGHUP between steps
+        print(f"interrupted: {err}; log (aborted): {out / 'run.mcap'}", file=sys.stderr)
+        sys.exit(130)
     m = result.last_metrics
     print(
         f"{result.state} after {result.steps} steps in {result.wall_s:.1f} s wall: "

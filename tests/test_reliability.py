@@ -207,7 +207,9 @@ def test_interrupt_leaves_a_finalised_aborted_log(tmp_path, sig):
     proc, log = start_long_run(tmp_path)
     proc.send_signal(sig)
     proc.wait(timeout=60)
-    assert proc.returncode != 0
+    assert proc.returncode == 130
+    stderr = proc.stderr.read()
+    assert "Traceback" not in stderr and f"interrupted: received {sig.name}" in stderr, stderr
     with warnings.catch_warnings():
         warnings.simplefilter("error", LogWarning)  # finalised: no recovery needed
         run_log = load_run(log)
