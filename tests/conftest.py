@@ -5,6 +5,8 @@ Configs are composed from ``conf/`` exactly as the app composes them
 every config group found in ``conf/``, so a new option is tested without editing tests.
 """
 
+import copy
+import functools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -39,10 +41,22 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize("group_option", pairs, ids=[f"{g}={o}" for g, o in pairs])
 
 
+@functools.cache
+def _composed(overrides: tuple[str, ...]) -> DictConfig:
+    return compose(overrides)
+
+
+def compose_cached(overrides: Sequence[str] = ()) -> DictConfig:
+    """:func:`harness.api.compose`, each distinct list of overrides composed once per
+    session (Hydra takes about 0.1 s a composition); a copy, so a test may change it.
+    """
+    return copy.deepcopy(_composed(tuple(overrides)))
+
+
 @pytest.fixture(name="compose", scope="session")
 def compose_fixture() -> Callable[..., DictConfig]:
     """``compose(overrides)``: the app's config with those overrides."""
-    return compose
+    return compose_cached
 
 
 @pytest.fixture(scope="session")
@@ -58,7 +72,7 @@ def refusal() -> Callable[[Sequence[str]], str | None]:
 
     def refuse(overrides: Sequence[str]) -> str | None:
         try:
-            build(compose(overrides))
+            build(compose_cached(overrides))
         except ConfigError as err:
             return str(err)
         except (HydraException, OmegaConfBaseException) as err:
