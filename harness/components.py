@@ -61,6 +61,17 @@ class Incompatible(ParameterError):
     """
 
 
+def require_field(control: Any, where: str) -> None:
+    """Raise :class:`Incompatible` naming ``control`` unless the law gives a velocity
+    field (``gives_field``); ``where`` says who needs it and why
+    (``"on plant=meanfield (the density moves by it)"``).
+    """
+    if not control.gives_field:
+        raise Incompatible(
+            "control", type(control).__name__, f"a law with a velocity field {where}"
+        )
+
+
 def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
 

@@ -18,13 +18,13 @@ import numpy as np
 
 from harness.components import (
     Control,
-    Incompatible,
     MemoryEstimate,
     ParameterError,
     default_memory,
     flag,
     integer,
     number,
+    require_field,
 )
 from harness.filters.common import FilterSettings, MeasurementModel
 from harness.filters.engines import FilterEngine
@@ -244,12 +244,7 @@ class FilterEstimator:
         """The filters' transport model is ``A(v)`` of the law's field: refuse a law
         without one.
         """
-        if not control.gives_field:
-            raise Incompatible(
-                "control", type(control).__name__,
-                "a law with a velocity field for estimator=filters (the filters' "
-                "transport model A(v) is the field's)",
-            )  # fmt: skip
+        require_field(control, "for estimator=filters (their transport model is A(v) of it)")
 
     def _estimate(self, p_hat: np.ndarray, q_hat: np.ndarray) -> Estimate:
         return Estimate(p_hat, q_hat, *self.engine.traces)

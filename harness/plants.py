@@ -29,13 +29,13 @@ from harness.agents import Swarm
 from harness.components import (
     Control,
     Density,
-    Incompatible,
     MemoryEstimate,
     default_memory,
     flag,
     integer,
     number,
     require,
+    require_field,
 )
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
@@ -100,12 +100,7 @@ class Agents:
 
     def check(self, control: Control, **parts: object) -> None:
         """The limit ``p_inf`` moves by the law's field: refuse a law without one."""
-        if not control.gives_field:
-            raise Incompatible(
-                "control", type(control).__name__,
-                "a law with a velocity field on plant=agents (its N -> infinity limit "
-                "moves by the field)",
-            )  # fmt: skip
+        require_field(control, "on plant=agents (its N -> infinity limit moves by the field)")
 
     def start(self, rng: np.random.Generator) -> None:
         """Draw ``N`` robots from ``p_0``."""
@@ -168,11 +163,7 @@ class MeanField:
 
     def check(self, control: Control, **parts: object) -> None:
         """The density moves by the law's field: refuse a law without one."""
-        if not control.gives_field:
-            raise Incompatible(
-                "control", type(control).__name__,
-                "a law with a velocity field on plant=meanfield (the density moves by it)",
-            )  # fmt: skip
+        require_field(control, "on plant=meanfield (the density moves by it)")
 
     def start(self, rng: np.random.Generator) -> None:
         """Nothing to draw: the state is ``p_0`` on the grid."""

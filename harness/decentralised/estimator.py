@@ -24,6 +24,7 @@ from harness.components import (
     integer,
     number,
     require,
+    require_field,
 )
 from harness.decentralised.consensus import DynamicAverageConsensus, consensus_weights
 from harness.decentralised.filters import RobotFilters
@@ -302,12 +303,7 @@ class DistributedEstimator:
                 "a plant with robots (plant=agents): every robot of estimator=distributed "
                 "estimates and moves on its own",
             )  # fmt: skip
-        if not control.gives_field:
-            raise Incompatible(
-                "control", type(control).__name__,
-                "a law with a velocity field for estimator=distributed (the filters' "
-                "transport model A(v) is the field's)",
-            )  # fmt: skip
+        require_field(control, "for estimator=distributed (its filters' model is A(v) of it)")
         if not control.own_estimates:
             raise Incompatible(
                 "control", type(control).__name__,
