@@ -81,13 +81,6 @@ def run_config(cfg: DictConfig) -> DictConfig:
     return OmegaConf.masked_copy(cfg, [str(k) for k in cfg.keys() if k != "hydra"])
 
 
-def identify(cfg: DictConfig) -> RunIdentity:
-    """The identity of a run of ``cfg`` (its ``hydra`` node, when present, is Hydra's,
-    not the run's: left out).
-    """
-    return RunIdentity(resolved(cfg), int(cfg.seed))
-
-
 def config_hash(cfg: DictConfig) -> str:
     """SHA-256 (hex) of the resolved config without ``hydra`` and the presentation keys
     (:data:`harness.checks.PRESENTATION_KEYS`): equal exactly when two runs compute and

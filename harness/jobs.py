@@ -58,10 +58,10 @@ from omegaconf import DictConfig, OmegaConf
 from harness.build import Experiment, build
 from harness.checks import ConfigError, check_disk
 from harness.identity import config_hash
+from harness.mcap_log import LOG_FILE
 from harness.run import RunResult, Terminated, run
 
 STATUS_FILE = "job_status.json"
-LOG_FILE = "run.mcap"
 LOCK_FILE = ".job.lock"
 MAX_NAME_BYTES = 200
 """Longest job directory name kept as is (file systems allow 255 bytes)."""

@@ -32,6 +32,7 @@ from harness.components import ParameterError
 from harness.fokker_planck import NumericalError
 from harness.identity import config_hash, provenance
 from harness.loop import ClosedLoop
+from harness.mcap_log import LOG_FILE
 from harness.observers import Observer, RunContext, Status
 
 __all__ = ["DiskFull", "RunResult", "Terminated", "config_hash", "provenance", "run"]
@@ -158,7 +159,7 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
             "this Experiment has run already (its components keep their state): build it again"
         )
     out_dir = Path(out_dir)
-    log_path = out_dir / "run.mcap"
+    log_path = out_dir / LOG_FILE
     if not overwrite and (log_path.exists() or log_path.is_symlink()):
         raise ConfigError(
             "hydra.run.dir",
@@ -289,9 +290,7 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest) -> RunResult:
             f"(t = {done * exp.dt:g} s): {disk_error.strerror}; the log keeps what was "
             "written before (analysis.load.load_run recovers it)"
         )
-    return RunResult(
-        state, reason, done, time.perf_counter() - t0, out_dir / "run.mcap", last, log_s
-    )
+    return RunResult(state, reason, done, time.perf_counter() - t0, out_dir / LOG_FILE, last, log_s)
 
 
 def threading_is_main() -> bool:
