@@ -72,6 +72,28 @@ def require_field(control: Any, where: str) -> None:
         )
 
 
+def needs_robots(control: Any) -> bool:
+    """Whether ``control`` has no mean-field form (its optional ``needs_robots``)."""
+    return bool(getattr(control, "needs_robots", False))
+
+
+def refuse_robot_law(control: Any, where: str) -> None:
+    """Raise :class:`Incompatible` naming ``control`` when it needs robots
+    (:func:`needs_robots`); ``where`` says who cannot give them.
+    """
+    if needs_robots(control):
+        raise Incompatible(
+            "control", type(control).__name__, f"a law with a mean-field form {where}"
+        )
+
+
+def speed_cap(value: Any) -> float | None:
+    """The optional speed cap ``control.v_max``: None, or a number ``> 0`` (length / s)."""
+    if value is None:
+        return None
+    return number("v_max", value, 0.0, strict=True)
+
+
 def _is_number(x: Any) -> bool:
     return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, bool)
 
@@ -223,6 +245,13 @@ class Control(Protocol):
         own_estimates: Whether the law moves each robot by the law of the robot's own
             estimate when the estimate carries them (``Estimate.robots``); an estimator
             whose robots estimate on their own refuses a law without.
+        needs_robots: Whether the law has no mean-field form: it moves robots and cannot
+            act on a density (``ControlInput.density``). The mean-field plant refuses
+            it, and the agents plant then has no ``N -> infinity`` limit to carry
+            (:class:`harness.plants.Agents`). Optional; false when absent
+            (:func:`needs_robots`).
+        v_max: The speed cap (length / s) every command is capped at
+            (:meth:`harness.records.Command.capped`), or None.
     """
 
     gives_field: bool

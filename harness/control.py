@@ -20,7 +20,7 @@ from typing import ClassVar
 import numpy as np
 
 from harness.compiled.control import paper_velocity
-from harness.components import flag, number
+from harness.components import flag, number, speed_cap
 from harness.densities import Target
 from harness.grid import Grid
 from harness.records import Command, ControlInput
@@ -242,6 +242,9 @@ class FieldLaw:
     Attributes:
         target: The target on the grid.
         gives_field: True: every command has the field.
+        needs_robots: False: a field law acts on estimates, with or without robots.
+        v_max: The speed cap (length / s) of every command, or None
+            (:meth:`harness.records.Command.capped`).
         own_estimates: Whether the law evaluates each robot's own estimate: true for a
             class that defines :meth:`at_cells` itself, or inherits both :meth:`field`
             and :meth:`at_cells` (a subclass that redefines :meth:`field` without
@@ -251,7 +254,9 @@ class FieldLaw:
 
     gives_field: ClassVar[bool] = True
     own_estimates: ClassVar[bool] = False
+    needs_robots: ClassVar[bool] = False
     target: Target
+    v_max: float | None = None
 
     def __init_subclass__(cls, **kwargs: object) -> None:
         super().__init_subclass__(**kwargs)
@@ -290,7 +295,7 @@ class FieldLaw:
         v = self.field(est.p_hat, est.q_hat)
         own = est.robots
         if own is None:
-            return Command(v)
+            return Command(v).capped(self.v_max)
         if not self.own_estimates or inp.positions is None:
             raise ValueError(
                 f"{type(self).__name__} cannot move robots by their own estimates "
@@ -298,7 +303,7 @@ class FieldLaw:
             )
         grid = self.target.grid
         robots = own_velocities(grid, self.at_cells, own.p_hat, inp.positions, own.q_hat)
-        return Command(v, robots)
+        return Command(v, robots).capped(self.v_max)
 
 
 class PaperControl(FieldLaw):
@@ -342,6 +347,7 @@ class PaperControl(FieldLaw):
         debias: Compare the estimates with ``K_h * p_*`` in the feedback term.
         bandwidth: The KDE's bandwidth ``h`` (length), for ``debias``.
         mirror: The KDE's wall images, for ``debias``.
+        v_max: Speed cap (length / s), or None.
     """
 
     def __init__(
@@ -352,11 +358,13 @@ class PaperControl(FieldLaw):
         debias: bool = False,
         bandwidth: float | None = None,
         mirror: bool = True,
+        v_max: float | None = None,
     ) -> None:
         self.target = target
         self.alpha = number("alpha", alpha, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
         self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
+        self.v_max = speed_cap(v_max)
 
     def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The velocity by eq. ``modified density feedback law using estimates``."""
@@ -405,6 +413,7 @@ class HeatControl(FieldLaw):
         noise_compensation: Include the ``sigma q_hat / p_hat`` term.
         debias, bandwidth, mirror: As :class:`PaperControl` (``grad p~_*`` replaces
             ``grad p_*`` in the feedback term).
+        v_max: Speed cap (length / s), or None.
     """
 
     def __init__(
@@ -417,7 +426,9 @@ class HeatControl(FieldLaw):
         debias: bool = False,
         bandwidth: float | None = None,
         mirror: bool = True,
+        v_max: float | None = None,
     ) -> None:
+        self.v_max = speed_cap(v_max)
         self.target = target
         self.alpha = number("alpha", alpha, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
@@ -458,3 +469,54 @@ class HeatControl(FieldLaw):
         ``-alpha p / max(p, c) grad(p - p_*)``.
         """
         return self.alpha * float(np.max(p0 / np.maximum(p0, self.density_floor)))
+
+
+class LangevinControl(FieldLaw):
+    """Open-loop Langevin drift (``control=langevin``): the baseline without feedback.
+
+        v = sigma grad log p_* = sigma grad p_* / p_*,
+
+    the paper's law (eq. ``modified density feedback law 1``) at ``alpha = 0``, given its
+    own name so that studies group it. Inputs: the target's score ``grad log p_*`` only
+    (no estimate, no position); no density in a denominator other than the target's.
+
+    Fixed point and stability. The closed loop is the Fokker-Planck equation ``d_t p =
+    div(sigma p_* grad(p / p_*))`` (the paper's ``d_t p = div((alpha p + sigma p_*)
+    grad(p / p_*))`` at ``alpha = 0``): ``p_*`` is its stationary density (the drift is
+    exactly the compensation ``sigma grad log p_*``), and ``V = 1/2 int (p - p_*)^2 /
+    p_*`` decays at the rate ``sigma lambda`` of the ``p_*``-weighted Poincare constant
+    ``lambda`` (the paper's rate ``(alpha + sigma) lambda`` at ``alpha = 0``). It needs
+    no estimate, so estimation errors do not reach it: its ISS gain is zero, and its
+    convergence is as slow as the noise (``1 / (sigma lambda)``; about 200 s for the
+    paper's target and ``sigma = 5e-5``). Discretised as :func:`paper_law` at ``alpha =
+    0`` (the face drift makes ``p_*`` the exact discrete steady state).
+
+    Args:
+        target: The target on the grid (run-time argument).
+        sigma: The robots' noise intensity ``>= 0`` (length^2 / s).
+        v_max: Speed cap (length / s), or None.
+    """
+
+    def __init__(self, target: Target, sigma: float, v_max: float | None = None) -> None:
+        self.target = target
+        self.alpha = 0.0
+        self.sigma = number("sigma", sigma, 0.0)
+        self.v_max = speed_cap(v_max)
+        zero = np.zeros(target.grid.shape)
+        self._field = paper_law(zero, np.zeros((2, *zero.shape)), target, 0.0, self.sigma)
+
+    def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
+        """``sigma grad log p_*`` (the estimates are not used)."""
+        return self._field
+
+    def at_cells(
+        self, p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``sigma grad p_* / p_*`` at flat ``cells`` (the estimates are not used)."""
+        t = self.target
+        tp = t.p.ravel()[cells]
+        return self.sigma * t.grad[0].ravel()[cells] / tp, self.sigma * t.grad[1].ravel()[cells] / tp
+
+    def feedback_diffusivity(self, p0: np.ndarray) -> float:
+        """0: no feedback."""
+        return 0.0

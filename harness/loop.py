@@ -13,7 +13,8 @@ step):
 2. the plant is measured at ``t_{n+1}`` (only when the estimator uses a measurement);
 3. the estimator predicts under ``v_n`` and updates with the measurement;
 4. the control gives ``u_{n+1}`` from what it uses (:class:`~harness.records.ControlInput`:
-   the time, the estimate, the robots' positions).
+   the time, the estimate, the robots' positions as observed, or without robots the
+   mean-field density that stands for them).
 
 Errors are measured against the plant's mean-field density ``p`` (notes section 5):
 ``Phi = p - p_*``, ``eps = p_hat - p`` and ``eps_g = q_hat - grad p``, the states of the
@@ -28,6 +29,13 @@ import numpy as np
 from harness.components import Control, Estimator, Plant
 from harness.fokker_planck import FokkerPlanck, NumericalError
 from harness.records import Command, ControlInput, Estimate, Measurement, StepInput, StepRecord
+
+
+def observed(plant: Plant) -> np.ndarray | None:
+    """The robots' positions as the estimator and the law see them: the plant's
+    ``observed`` (with its localisation noise) when it has one, else its positions.
+    """
+    return getattr(plant, "observed", plant.positions)
 
 
 class ClosedLoop:
@@ -73,7 +81,9 @@ class ClosedLoop:
     def _control(self, est: Estimate) -> Command:
         if not (np.isfinite(est.p_hat).all() and np.isfinite(est.q_hat).all()):
             raise NumericalError("the estimate became non-finite")
-        command = self.control(ControlInput(self.t, est, self.plant.positions))
+        seen = observed(self.plant)
+        density = self.plant.density if seen is None else None
+        command = self.control(ControlInput(self.t, est, seen, density))
         if not command.is_finite():
             raise NumericalError("the command became non-finite")
         return command
@@ -86,7 +96,7 @@ class ClosedLoop:
             None if command is None else command.field,
             a,
             self.plant.density,
-            self.plant.positions,
+            observed(self.plant),
         )
 
     def start(self) -> StepRecord:

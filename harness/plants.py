@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from harness.agents import Swarm
+from harness.agents import Swarm, reflect
 from harness.components import (
     Control,
     Density,
@@ -33,7 +33,9 @@ from harness.components import (
     default_memory,
     flag,
     integer,
+    needs_robots,
     number,
+    refuse_robot_law,
     require,
     require_field,
 )
@@ -54,6 +56,17 @@ class Agents:
         bandwidth: KDE bandwidth ``h > 0`` (length), at most the domain side.
         mirror: Wall images in the KDE.
         method: KDE evaluation, ``auto`` | ``exact`` | ``binned``.
+        localisation_noise: Standard deviation ``s >= 0`` (length) of the localisation
+            error: the estimator and the law see ``X_i + s xi_i`` (``xi_i`` standard
+            normal, fresh every step, drawn from the run's generator after the robots
+            move; reflected into the domain at the walls), while the robots move from
+            their true positions and the swarm metrics use the true ones. 0 draws
+            nothing.
+
+    Without a mean-field form of the law (``needs_robots``, a law that moves each
+    robot itself, such as a Markov chain or an assignment) there is no limit to
+    compute: ``density`` is then the robots' histogram (robots per cell over ``N``
+    times the cell area, 1 / length^2), and ``has_limit`` is false.
     """
 
     def __init__(
@@ -66,8 +79,11 @@ class Agents:
         bandwidth: float,
         mirror: bool = True,
         method: str = "auto",
+        localisation_noise: float = 0.0,
     ) -> None:
         self.grid, self.model, self.init, self.control = grid, model, init, control
+        self.localisation_noise = number("localisation_noise", localisation_noise, 0.0)
+        self.has_limit = not needs_robots(control)
         self.density = init.on_grid(grid)
         self.n = integer("n", n, 1)
         h = number("bandwidth", bandwidth, 0.0, strict=True)
@@ -98,6 +114,25 @@ class Agents:
         """Robot positions ``(2, N)`` (length), None before :meth:`start`."""
         return None if self.swarm is None else self.swarm.positions
 
+    @property
+    def observed(self) -> np.ndarray | None:
+        """The positions as the estimator and the law see them ``(2, N)`` (length):
+        the true ones plus the localisation error (the class docstring).
+        """
+        return self._observed if self.localisation_noise > 0 else self.positions
+
+    def _observe(self, rng: np.random.Generator) -> None:
+        """Draw the localisation error of the current positions."""
+        if self.localisation_noise > 0:
+            assert self.swarm is not None
+            g = self.grid
+            seen = self.swarm.positions + self.localisation_noise * rng.standard_normal(
+                self.swarm.positions.shape
+            )
+            reflect(seen[0], g.x0, g.x1)
+            reflect(seen[1], g.y0, g.y1)
+            self._observed = seen
+
     def check(self, control: Control, **parts: object) -> None:
         """The limit ``p_inf`` moves by the law's field: refuse a law without one."""
         require_field(control, "on plant=agents (its N -> infinity limit moves by the field)")
@@ -106,14 +141,18 @@ class Agents:
         """Draw ``N`` robots from ``p_0``."""
         self.swarm = Swarm(self.grid, self.init.sample(self.n, self.grid, rng), self.model.sigma)
         self.t = 0.0
+        if not self.has_limit:
+            self.density = self.swarm.histogram()
+        self._observe(rng)
 
     def advance(
         self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
     ) -> None:
         """Robots by Euler-Maruyama with reflection under the command (their own
         velocities when it has them, else the field's interpolant); the limit ``p_inf``
-        under the law's field of its own noise-free KDE (held over the step, like the
-        command).
+        under the law's field of its own noise-free KDE and of ``p_inf`` itself (held
+        over the step, like the command), or the robots' histogram without a limit;
+        then the localisation error of the new positions.
         """
         assert self.swarm is not None, "call start first"
         if command.robots is not None:
@@ -121,15 +160,22 @@ class Agents:
         else:
             assert command.field is not None
             self.swarm.step(command.field, dt, rng)
-        limit = self.control(ControlInput(self.t, Estimate(*self.smoother(self.density))))
-        assert limit.field is not None
-        self.density = self.model.step(self.density, limit.field, dt)
+        if self.has_limit:
+            estimate = Estimate(*self.smoother(self.density))
+            limit = self.control(ControlInput(self.t, estimate, density=self.density))
+            assert limit.field is not None
+            self.density = self.model.step(self.density, limit.field, dt)
+        else:
+            self.density = self.swarm.histogram()
         self.t += dt
+        self._observe(rng)
 
     def measure(self, rng: np.random.Generator) -> Measurement:
-        """The KDE of the robots and its analytic gradient."""
+        """The KDE of the robots as observed (:attr:`observed`) and its analytic gradient."""
         assert self.swarm is not None, "call start first"
-        return Measurement(*self.kde(self.swarm.positions))
+        seen = self.observed
+        assert seen is not None
+        return Measurement(*self.kde(seen))
 
 
 class MeanField:
@@ -140,10 +186,14 @@ class MeanField:
             density moves under the applied velocity).
         robots: Swarm size ``N >= 1`` whose KDE noise is imitated.
         bandwidth: KDE bandwidth ``h > 0`` (length) whose noise is imitated.
+        localisation_noise: Must be 0: without robots there are no positions to
+            mislocate.
     """
 
     positions = None
+    observed = None
     has_robots = False
+    has_limit = True
     resolution = None  # white noise per cell: grid resolution
 
     def __init__(
@@ -154,7 +204,10 @@ class MeanField:
         control: Control,
         robots: int,
         bandwidth: float,
+        localisation_noise: float = 0.0,
     ) -> None:
+        noise = number("localisation_noise", localisation_noise, 0.0)
+        require(noise == 0, "localisation_noise", localisation_noise, "0 without robots")
         self.grid, self.model = grid, model
         self.density = init.on_grid(grid)
         self.robots = integer("robots", robots, 1)
@@ -162,8 +215,11 @@ class MeanField:
         self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
 
     def check(self, control: Control, **parts: object) -> None:
-        """The density moves by the law's field: refuse a law without one."""
+        """The density moves by the law's field of the density: refuse a law without a
+        field or without a mean-field form.
+        """
         require_field(control, "on plant=meanfield (the density moves by it)")
+        refuse_robot_law(control, "on plant=meanfield (it has no robots)")
 
     def start(self, rng: np.random.Generator) -> None:
         """Nothing to draw: the state is ``p_0`` on the grid."""

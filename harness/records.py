@@ -13,7 +13,7 @@ from dataclasses import field as dc_field
 import numpy as np
 import scipy.sparse as sp
 
-from harness.velocity import VelocityField
+from harness.velocity import VelocityField, cap_vectors
 
 
 @dataclass(frozen=True)
@@ -115,13 +115,19 @@ class ControlInput:
         t: Time (s).
         estimate: The estimates (and, when the robots estimate on their own, each
             robot's own, ``estimate.robots``).
-        positions: Robot positions ``(2, N)`` (length), None without robots (the
-            mean-field plant, and the agents plant's ``N -> infinity`` limit).
+        positions: Robot positions ``(2, N)`` (length) as the law sees them (with the
+            plant's localisation noise), None without robots (the mean-field plant, and
+            the agents plant's ``N -> infinity`` limit).
+        density: Without robots, the mean-field density ``(ny, nx)`` (1 / length^2) that
+            stands for them (the mean-field plant's state; the agents plant's limit
+            ``p_inf``): a law of the positions evaluates its mean-field form on it.
+            None with robots.
     """
 
     t: float
     estimate: Estimate
     positions: np.ndarray | None = None
+    density: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -139,6 +145,20 @@ class Command:
 
     field: VelocityField | None
     robots: np.ndarray | None = None
+
+    def capped(self, v_max: float | None) -> Command:
+        """The command with every speed at most ``v_max`` (length / s; None: itself).
+
+        Each robot's velocity and each cell-centre vector of the field is scaled by
+        ``min(1, v_max / |v|)`` (direction kept), and each face-normal value is clipped
+        to ``[-v_max, v_max]``; robots that follow the field interpolate capped centres,
+        so their speed is at most ``v_max`` too (a convex combination).
+        """
+        if v_max is None:
+            return self
+        field = None if self.field is None else self.field.capped(v_max)
+        robots = None if self.robots is None else cap_vectors(self.robots, v_max)
+        return Command(field, robots)
 
     def is_finite(self) -> bool:
         """True when every value of the field and of the robots' velocities is finite."""

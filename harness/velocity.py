@@ -53,6 +53,41 @@ class VelocityField:
         """The zero field."""
         return cls.from_centres(np.zeros((2, *grid.shape)))
 
+    def capped(self, v_max: float) -> VelocityField:
+        """Speeds at most ``v_max`` (length / time): centre vectors scaled by ``min(1,
+        v_max / |v|)``, face-normal values clipped to ``[-v_max, v_max]``.
+        """
+        return VelocityField(
+            cap_vectors(self.centres, v_max),
+            np.clip(self.face_x, -v_max, v_max),
+            np.clip(self.face_y, -v_max, v_max),
+        )
+
+    @classmethod
+    def from_robots(cls, grid: Grid, positions: np.ndarray, velocities: np.ndarray) -> VelocityField:
+        """The swarm's mean velocity per cell: the field a law that moves each robot
+        itself gives the density's transport.
+
+        In cell ``c`` with robots ``i in c``: ``v_c = sum_{i in c} v_i / #c`` (zero in an
+        empty cell), so ``p_hist v_c`` is the swarm's own flux per cell, with
+        ``p_hist = #c / (N |c|)`` its histogram; the faces are the means of the
+        neighbouring centres (:meth:`from_centres`).
+
+        Args:
+            grid: The grid.
+            positions: ``(2, N)`` (length), inside the domain.
+            velocities: ``(2, N)`` (length / time).
+        """
+        col = np.clip(((positions[0] - grid.x0) / grid.dx).astype(np.intp), 0, grid.nx - 1)
+        row = np.clip(((positions[1] - grid.y0) / grid.dy).astype(np.intp), 0, grid.ny - 1)
+        cell = row * grid.nx + col
+        count = np.bincount(cell, minlength=grid.size).astype(float)
+        occupied = np.maximum(count, 1.0)
+        centres = np.stack(
+            [np.bincount(cell, velocities[c], grid.size) / occupied for c in range(2)]
+        )
+        return cls.from_centres(centres.reshape(2, *grid.shape))
+
     def is_finite(self) -> bool:
         """True when every stored value is finite."""
         return bool(
@@ -60,6 +95,17 @@ class VelocityField:
             and np.isfinite(self.face_x).all()
             and np.isfinite(self.face_y).all()
         )
+
+
+def cap_vectors(v: np.ndarray, v_max: float) -> np.ndarray:
+    """Vectors along axis 0 (``(2, ...)``, length / time) scaled by ``min(1, v_max /
+    |v|)``: the same direction, speed at most ``v_max`` (a new array).
+    """
+    if not v_max >= 0:
+        raise ValueError(f"v_max must be >= 0, got {v_max}")
+    speed = np.sqrt(v[0] ** 2 + v[1] ** 2)
+    scale = np.minimum(1.0, v_max / np.maximum(speed, 1e-300))
+    return v * scale
 
 
 def centres_to_face_x(f: np.ndarray) -> np.ndarray:
