@@ -515,7 +515,9 @@ class LangevinControl(FieldLaw):
         """``sigma grad p_* / p_*`` at flat ``cells`` (the estimates are not used)."""
         t = self.target
         tp = t.p.ravel()[cells]
-        return self.sigma * t.grad[0].ravel()[cells] / tp, self.sigma * t.grad[1].ravel()[cells] / tp
+        return self.sigma * t.grad[0].ravel()[cells] / tp, self.sigma * t.grad[1].ravel()[
+            cells
+        ] / tp
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """0: no feedback."""

@@ -64,7 +64,9 @@ class VelocityField:
         )
 
     @classmethod
-    def from_robots(cls, grid: Grid, positions: np.ndarray, velocities: np.ndarray) -> VelocityField:
+    def from_robots(
+        cls, grid: Grid, positions: np.ndarray, velocities: np.ndarray
+    ) -> VelocityField:
         """The swarm's mean velocity per cell: the field a law that moves each robot
         itself gives the density's transport.
 
