@@ -84,6 +84,9 @@ METRIC_KEYS = (
     "limit_swarm_l2",
     "limit_target_l2",
     "phat_smoothed_target_l2",
+    "effort",
+    "mean_speed",
+    "peak_speed",
     "consensus_l2",
     "central_gap_l2",
     "messages",
@@ -93,7 +96,8 @@ METRIC_KEYS = (
 )
 """The keys of every ``/metrics`` message, in log order: the field metrics
 (:class:`harness.metrics.FieldMetrics`), the swarm metrics
-(:class:`harness.metrics.SwarmTruth`) and the numbers an estimator publishes
+(:class:`harness.metrics.SwarmTruth`), the motion metrics (:mod:`harness.motion`) and
+the numbers an estimator publishes
 (``Estimate.metrics``; the last six are the decentralised estimator's). A key no
 observer gave is ``null``."""
 

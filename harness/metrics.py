@@ -134,6 +134,9 @@ class SwarmTruth:
         w2_every: Steps between evaluations of ``swarm_w2`` (the transport is costlier).
         floor_draws: Monte-Carlo draws of the finite-N floors (``>= 2``).
         seed: The run's seed.
+        plant: The run's plant (run-time argument): without an ``N -> infinity`` limit
+            (its ``has_limit`` false: a law without a mean-field form) the two terms
+            against the limit, ``limit_swarm_l2`` and ``limit_target_l2``, are None.
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
@@ -150,8 +153,10 @@ class SwarmTruth:
         w2_every: int,
         floor_draws: int = 30,
         seed: int = 0,
+        plant: object = None,
     ) -> None:
         self.grid, self.target = grid, target
+        self.has_limit = bool(getattr(plant, "has_limit", True))
         self.every = integer("every", every, 1)
         self.w2_every = integer("w2_every", w2_every, 1)
         self.total_steps = steps
@@ -175,11 +180,12 @@ class SwarmTruth:
             return out
         g = self.grid
         smooth_swarm, _ = self.kde(rec.positions)
-        smooth_limit = self.smoother(rec.p_true)[0]
         out["swarm_l2"] = g.l2(smooth_swarm - self.smoothed_target)
         out["est_swarm_l2"] = g.l2(rec.estimate.p_hat - smooth_swarm)
-        out["limit_swarm_l2"] = g.l2(smooth_swarm - smooth_limit)
-        out["limit_target_l2"] = g.l2(smooth_limit - self.smoothed_target_cells)
+        if self.has_limit:
+            smooth_limit = self.smoother(rec.p_true)[0]
+            out["limit_swarm_l2"] = g.l2(smooth_swarm - smooth_limit)
+            out["limit_target_l2"] = g.l2(smooth_limit - self.smoothed_target_cells)
         if rec.step % self.w2_every == 0 or last:
             out["swarm_w2"] = swarm_w2(rec.positions, self.measure(rec.positions.shape[1]))
         return out

@@ -74,3 +74,50 @@ euler_maruyama_step = SerialParallel(
 """Compiled :func:`_euler_maruyama_step`, parallel from ``PARALLEL_MIN_ROBOTS`` robots on;
 the serial and parallel builds run the same per-robot arithmetic, so they give the same
 bits."""
+
+
+def _speed_sums(
+    pos: np.ndarray,
+    vc: np.ndarray,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    nx: int,
+    ny: int,
+) -> tuple[float, float, float]:
+    """``(sum |v_k|^2, max |v_k|, sum |v_k|)`` over robots ``k`` of the bilinear
+    interpolant of the cell-centre velocity ``vc`` ``(2, ny, nx)`` at ``pos`` ``(2, N)``
+    (the interpolation of :func:`_euler_maruyama_step`; numpy statement:
+    :func:`harness.motion.speed_sums_reference`). Sums run in parallel, so their last
+    bits depend on the thread count.
+    """
+    dx = (x1 - x0) / nx
+    dy = (y1 - y0) / ny
+    n = pos.shape[1]
+    sq = 0.0
+    peak = 0.0
+    total = 0.0
+    for k in numba.prange(n):
+        u = min(max((pos[0, k] - x0) / dx - 0.5, 0.0), nx - 1.0)
+        w = min(max((pos[1, k] - y0) / dy - 0.5, 0.0), ny - 1.0)
+        i0 = min(int(u), nx - 2)
+        j0 = min(int(w), ny - 2)
+        fx = u - i0
+        fy = w - j0
+        a = vc[0, j0, i0] + fx * (vc[0, j0, i0 + 1] - vc[0, j0, i0])
+        b = vc[0, j0 + 1, i0] + fx * (vc[0, j0 + 1, i0 + 1] - vc[0, j0 + 1, i0])
+        vx = a * (1.0 - fy) + b * fy
+        a = vc[1, j0, i0] + fx * (vc[1, j0, i0 + 1] - vc[1, j0, i0])
+        b = vc[1, j0 + 1, i0] + fx * (vc[1, j0 + 1, i0 + 1] - vc[1, j0 + 1, i0])
+        vy = a * (1.0 - fy) + b * fy
+        s2 = vx * vx + vy * vy
+        s = np.sqrt(s2)
+        sq += s2
+        total += s
+        peak = max(peak, s)
+    return sq, peak, total
+
+
+speed_sums = SerialParallel(_speed_sums, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS)
+"""Compiled :func:`_speed_sums`, parallel from ``PARALLEL_MIN_ROBOTS`` robots on."""

@@ -1,0 +1,92 @@
+"""How much the robots move: the per-step cost of a law (observer ``motion``).
+
+For the command ``u_n`` computed at ``t_n`` (held over the next step) and the robots'
+true positions ``X_k`` at ``t_n``, with ``v_k`` the velocity robot ``k`` is commanded
+(its own velocity when the command has one, else the bilinear interpolant of the
+field's cell centres at ``X_k``, as the robots move, :func:`harness.agents.interpolate`):
+
+    effort     = (1/N) sum_k |v_k|^2     (length^2 / s^2)
+    mean_speed = (1/N) sum_k |v_k|       (length / s)
+    peak_speed = max_k |v_k|             (length / s)
+
+The commanded velocity, not the realised one: the robots' noise ``sqrt(2 sigma) dB`` is
+not part of it. Without robots (``plant=meanfield``) the means are over the mean-field
+density ``p`` instead, ``int p |v|^2`` and ``int p |v|`` on the cell centres, and the
+peak is over the cells where ``p > 0``.
+
+:mod:`analysis.sweep` integrates ``effort`` over time (length^2 / s) and averages
+``mean_speed`` over the tail (motion at steady state).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from harness.agents import interpolate
+from harness.compiled.agents import speed_sums
+from harness.grid import Grid
+from harness.observers import RunContext, Status
+from harness.records import StepRecord
+
+MOTION_KEYS = ("effort", "mean_speed", "peak_speed")
+"""The motion metrics, in log order."""
+
+
+def speed_sums_reference(
+    grid: Grid, centres: np.ndarray, positions: np.ndarray
+) -> tuple[float, float, float]:
+    """Numpy statement of :func:`harness.compiled.agents.speed_sums`."""
+    speed = np.hypot(*interpolate(grid, centres, positions))
+    return float(np.sum(speed**2)), float(speed.max()), float(speed.sum())
+
+
+def motion(grid: Grid, rec: StepRecord) -> dict[str, float | None]:
+    """The motion metrics of ``rec`` (module docstring)."""
+    command, x = rec.command, rec.positions
+    if x is not None:
+        n = x.shape[1]
+        if command.robots is not None:
+            speed = np.hypot(command.robots[0], command.robots[1])
+            sq, peak, total = float(np.dot(speed, speed)), float(speed.max()), float(speed.sum())
+        else:
+            assert command.field is not None
+            g = grid
+            centres = np.ascontiguousarray(command.field.centres, dtype=float)
+            sq, peak, total = speed_sums(
+                np.ascontiguousarray(x, dtype=float), centres,
+                g.x0, g.x1, g.y0, g.y1, g.nx, g.ny,
+            )  # fmt: skip
+        return {"effort": sq / n, "mean_speed": total / n, "peak_speed": peak}
+    if command.field is None:
+        return dict.fromkeys(MOTION_KEYS)
+    p = np.maximum(rec.p_true, 0.0)
+    speed = np.hypot(*command.field.centres)
+    mass = grid.integrate(p)
+    return {
+        "effort": grid.integrate(p * speed**2) / mass,
+        "mean_speed": grid.integrate(p * speed) / mass,
+        "peak_speed": float(speed[p > 0].max()) if (p > 0).any() else 0.0,
+    }
+
+
+class Motion:
+    """The motion metrics of every step (:func:`motion`; observer ``motion``).
+
+    Args:
+        grid: The grid (run-time argument).
+    """
+
+    computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+
+    def __init__(self, grid: Grid) -> None:
+        self.grid = grid
+
+    def initialize(self, run: RunContext) -> None:
+        """Nothing to prepare."""
+
+    def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
+        """The step's motion metrics."""
+        values.update(motion(self.grid, rec))
+
+    def finalize(self, status: Status) -> None:
+        """Nothing to close."""
