@@ -45,6 +45,7 @@ bench: $(STAMP) ## Speed benchmarks, each figure next to its target (about 4 min
 	$(PY) -m benchmarks.suite
 	$(PY) -m benchmarks.numerics
 	$(PY) -m benchmarks.distributed --app
+	$(PY) -m benchmarks.laws
 
 RUN_DIR := outputs/reproduce
 

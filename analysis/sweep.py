@@ -37,6 +37,8 @@ each run the tail statistics use; ``--tail`` overrides it. The figures
 * ``conv_grid_agents`` (``grid.n``; ``conv_grid_agents.png/.pdf``): tail ``||p_hat -
   p_*||``, ``swarm_l2`` and the decomposition terms against n, and the wall time per
   step;
+* ``laws_n``, ``laws_iss``, ``heat_floor``, ``laws_noise``: the law studies
+  (:mod:`analysis.laws`);
 * ``convergence`` (``convergence.png/.pdf``): ``||Phi||`` curves overlaid, labelled by
   the first varied key, and the fitted exponential rates next to the theoretical
   ``(alpha + sigma) lambda``. The generic figure: a sweep without a declaration (one
@@ -47,7 +49,8 @@ the analysis with one line (exit status 2).
 
 Statistics (the CSV's columns; norms in 1/length, rates in 1/s): ``phi_tail_mean``,
 ``phi_tail_sup``, ``phat_tail_mean``, ``eps_tail_mean``, ``eps_g_tail_mean`` over the
-last ``tail`` fraction of the run; ``eps_sup``, ``eps_g_sup`` over the whole run;
+last ``tail`` fraction of the run; ``phi_sup``, ``eps_sup``, ``eps_g_sup`` over the
+whole run;
 ``rate_fit``, the least-squares slope of ``-log ||Phi||`` over the second half of the
 run; ``rate_theory`` from the log's ``theory`` record; ``wall_s`` (s) from its ``status``
 record. Swarm statistics (1/length, ``swarm_w2`` in length; empty without robots):
@@ -55,13 +58,17 @@ record. Swarm statistics (1/length, ``swarm_w2`` in length; empty without robots
 ``limit_target_tail_mean`` (tail means of the metrics of the same names without
 ``_l2``), ``swarm_w2_last`` (the last evaluated ``swarm_w2``), the floors
 ``swarm_floor_mean``/``_lo``/``_hi`` and ``swarm_w2_floor_mean``/``_lo``/``_hi`` from the
-``theory`` record, and ``swarm_ratio`` = ``swarm_tail_mean / swarm_floor_mean``;
+``theory`` record, ``swarm_ratio`` = ``swarm_tail_mean / swarm_floor_mean``,
+``swarm_w2_tail_mean`` (the tail mean of the evaluated ``swarm_w2``, length) and
+``swarm_w2_ratio`` = ``swarm_w2_tail_mean / swarm_w2_floor_mean``;
 ``ms_per_step``, the run's wall time per step (ms, from ``wall_s`` and the number of steps).
 Decentralised statistics (empty for other runs): ``central_gap_tail_mean``,
 ``consensus_tail_mean`` (1/length), ``messages_tail_mean`` (messages per robot per step),
 ``degree_tail_mean``, ``components_tail_mean``, ``connectivity_tail_mean`` (tail means
 of ``central_gap_l2``, ``consensus_l2``, ``messages``, ``mean_degree``, ``components``,
 ``algebraic_connectivity``).
+Motion statistics (:func:`motion_stats`): ``effort_integral`` (length^2 / s),
+``speed_tail_mean`` (length / s) and ``settling_time`` (s; ``inf``: never settled).
 
 Seeds. Rows that differ only in ``seed`` are one point: ``sweep_aggregated.csv`` has one
 row per point with, for every statistic ``s``, ``s_mean``, ``s_ci_low``, ``s_ci_high``
@@ -95,6 +102,7 @@ from analysis.stats import aggregate
 STATS = (
     "phi_tail_mean",
     "phi_tail_sup",
+    "phi_sup",
     "phat_tail_mean",
     "eps_tail_mean",
     "eps_g_tail_mean",
@@ -115,6 +123,8 @@ STATS = (
     "swarm_w2_floor_lo",
     "swarm_w2_floor_hi",
     "swarm_ratio",
+    "swarm_w2_tail_mean",
+    "swarm_w2_ratio",
     "ms_per_step",
     "central_gap_tail_mean",
     "consensus_tail_mean",
@@ -122,6 +132,9 @@ STATS = (
     "degree_tail_mean",
     "components_tail_mean",
     "connectivity_tail_mean",
+    "effort_integral",
+    "speed_tail_mean",
+    "settling_time",
 )
 
 
@@ -168,6 +181,7 @@ def job_stats(run, tail: float) -> dict[str, float]:
     return {
         "phi_tail_mean": _stat(np.mean, col("phi_l2")[last]),
         "phi_tail_sup": _stat(np.max, col("phi_l2")[last]),
+        "phi_sup": _stat(np.max, col("phi_l2")),
         "phat_tail_mean": _stat(np.mean, col("phat_target_l2")[last]),
         "eps_tail_mean": _stat(np.mean, col("eps_l2")[last]),
         "eps_g_tail_mean": _stat(np.mean, col("eps_g_l2")[last]),
@@ -202,8 +216,39 @@ def swarm_stats(run, last: np.ndarray) -> dict[str, float]:
         for part in ("mean", "lo", "hi"):
             out[f"{name}_{part}"] = _float(theory.get(f"{key}_{part}"))
     out["swarm_ratio"] = out["swarm_tail_mean"] / out["swarm_floor_mean"]
+    out["swarm_w2_tail_mean"] = tail_mean("swarm_w2")
+    out["swarm_w2_ratio"] = out["swarm_w2_tail_mean"] / out["swarm_w2_floor_mean"]
     for name, key in NETWORK_STATS.items():
         out[name] = tail_mean(key)
+    out.update(motion_stats(run, last, out["swarm_floor_mean"]))
+    return out
+
+
+SETTLING_FACTOR = 1.5
+"""``settling_time`` is the first time ``swarm_l2 <= SETTLING_FACTOR`` times the mean of
+its finite-N floor."""
+
+
+def motion_stats(run, last: np.ndarray, floor_mean: float) -> dict[str, float]:
+    """What a law costs and how fast it settles: ``effort_integral`` = ``int effort dt``
+    (length^2 / s, trapezoids over the logged steps), ``speed_tail_mean`` (the tail mean
+    of ``mean_speed``, length / s: motion at steady state), and ``settling_time`` (s): the
+    first time ``swarm_l2 <= SETTLING_FACTOR floor_mean``, ``inf`` when it never is (NaN
+    without robots or without a floor).
+    """
+    m = run.metrics
+    t = m["t"]
+    out = {"effort_integral": math.nan, "speed_tail_mean": math.nan, "settling_time": math.nan}
+    effort = m.get("effort")
+    if effort is not None and np.isfinite(effort).all():
+        out["effort_integral"] = float(np.sum(0.5 * (effort[1:] + effort[:-1]) * np.diff(t)))
+    speed = m.get("mean_speed")
+    if speed is not None:
+        out["speed_tail_mean"] = _stat(np.mean, speed[last])
+    swarm = m.get("swarm_l2")
+    if swarm is not None and math.isfinite(floor_mean) and np.isfinite(swarm).any():
+        settled = np.flatnonzero(np.isfinite(swarm) & (swarm <= SETTLING_FACTOR * floor_mean))
+        out["settling_time"] = float(t[settled[0]]) if settled.size else math.inf
     return out
 
 
@@ -268,6 +313,9 @@ def analyse(
         flat = flatten(logged_config(run))
         row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
         row["law"] = component(flat, "control")
+        theory = run.metadata.get("theory", {})
+        row["law_uses"] = theory.get("law_uses", "")
+        row["law_divides_by_density"] = theory.get("law_divides_by_density", "")
         row["state"] = run.state if run.recovery is None else f"damaged ({run.state})"
         row["wall_s"] = _float(run.metadata.get("status", {}).get("wall_s"))
         if "t" in run.metrics and len(run.metrics["t"]) > 2:
@@ -651,8 +699,29 @@ class Figure:
     needs: tuple[str, ...] = ()
 
 
+def _law_figure(name: str) -> Callable[[Study], list[Path]]:
+    """The figure ``name`` of :mod:`analysis.laws`, imported when it is drawn (that
+    module draws with this one's helpers).
+    """
+
+    def draw(study: Study) -> list[Path]:
+        from analysis import laws
+
+        result: list[Path] = getattr(laws, name)(study)
+        return result
+
+    return draw
+
+
 FIGURES: dict[str, Figure] = {
     "iss_gain": Figure(_iss, ("law", "estimator.delta")),
+    "laws_n": Figure(_law_figure("draw_laws_n"), ("law", "agents.n")),
+    "laws_iss": Figure(_law_figure("draw_laws_iss"), ("law", "estimator.shape", "estimator.delta")),
+    "heat_floor": Figure(
+        _law_figure("draw_heat_floor"),
+        ("control.density_floor", "estimator.shape", "estimator.delta"),
+    ),
+    "laws_noise": Figure(_law_figure("draw_laws_noise"), ("law", "agents.localisation_noise")),
     "debias_n": Figure(_debias, ("agents.n", "kde.debias")),
     "agents_n": Figure(_agents, ("agents.n",)),
     "distributed_r": Figure(_network, ("estimator.radius",)),

@@ -243,6 +243,8 @@ class FieldLaw:
         target: The target on the grid.
         gives_field: True: every command has the field.
         needs_robots: False: a field law acts on estimates, with or without robots.
+        uses: What the law reads, as a phrase (logged in the ``theory`` record).
+        divides_by_density: Whether a density estimate sits in a denominator.
         v_max: The speed cap (length / s) of every command, or None
             (:meth:`harness.records.Command.capped`).
         own_estimates: Whether the law evaluates each robot's own estimate: true for a
@@ -255,6 +257,8 @@ class FieldLaw:
     gives_field: ClassVar[bool] = True
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = False
+    uses: ClassVar[str] = "estimate, gradient estimate"
+    divides_by_density: ClassVar[bool] = False
     target: Target
     v_max: float | None = None
 
@@ -308,6 +312,13 @@ class FieldLaw:
 
 class PaperControl(FieldLaw):
     """The paper's law (``control=paper``), :func:`paper_law` with fixed gains.
+
+    Source: Zheng, Han, Lin, "Feedback interconnected mean-field density estimation and
+    control" (arXiv 2106.00899), eq. ``modified density feedback law using
+    estimates``. Inputs: the density and gradient estimates and the target;
+    no estimate in a denominator (only ``p_*``). Globally ISS in L2 with respect to
+    the estimation errors (Theorem ``thm:ISS``); fixed point ``p_*`` with the noise
+    (the drift ``sigma grad log p_*`` is the compensation).
 
     Debiased law (``kde.debias=true``). The KDE measures ``p~ = K_h * p``, the density
     smoothed by its kernel, and the filters (measurement operator ``H = I``) estimate
@@ -405,6 +416,17 @@ def _feedback_target(target: Target, debias: bool, bandwidth: float | None, mirr
 class HeatControl(FieldLaw):
     """The prior heat-equation law (``control=heat``), :func:`heat_law` with fixed gains.
 
+    Source: Eren and Açıkmeşe, "Velocity field generation for density control of
+    swarms using heat equation and smoothing kernels", IFAC-PapersOnLine 50(1), 2017:
+    ``v = -D (grad p_hat - grad p_*) / p_hat`` (``D`` is ``alpha`` here), with the floor
+    ``max(p_hat, c)`` and the noise compensation ``sigma q_hat / max(p_hat, c)``. Inputs:
+    the density and gradient estimates, ``grad p_*``. The density estimate sits in the
+    denominator: locally robust at best (the seed paper), and the floor ``c`` bounds the
+    gain ``1 / c`` that an estimate near zero multiplies the error with. Fixed point:
+    with exact estimates and ``p >= c`` the loop is ``d_t p = alpha Laplacian(p -
+    p_*)`` (the compensation cancels the noise), whose steady state is ``p_*``; without
+    the compensation, ``(alpha p_* + sigma c') / (alpha + sigma)`` (:func:`heat_law`).
+
     Args:
         target: The target on the grid (run-time argument).
         alpha: Feedback gain ``>= 0`` (length^2 / s times density, as in :func:`heat_law`).
@@ -415,6 +437,8 @@ class HeatControl(FieldLaw):
             ``grad p_*`` in the feedback term).
         v_max: Speed cap (length / s), or None.
     """
+
+    divides_by_density = True
 
     def __init__(
         self,
@@ -496,6 +520,8 @@ class LangevinControl(FieldLaw):
         sigma: The robots' noise intensity ``>= 0`` (length^2 / s).
         v_max: Speed cap (length / s), or None.
     """
+
+    uses = "target score"
 
     def __init__(self, target: Target, sigma: float, v_max: float | None = None) -> None:
         self.target = target

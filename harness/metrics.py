@@ -81,7 +81,10 @@ class FieldMetrics:
     the ``theory`` record the ``p_*``-weighted Poincare constant ``poincare_lambda``
     (1 / length^2, :func:`harness.theory.poincare_constant`) and, for laws with a gain
     ``alpha``, the exact-estimate decay rate ``rate_exact`` = ``(alpha + sigma) lambda``
-    (1 / s).
+    (1 / s); for a law that says what it uses (its ``uses``, a phrase such as
+    ``"estimate, gradient estimate, target score"``) and whether it divides by a
+    density estimate (``divides_by_density``), ``law_uses`` and
+    ``law_divides_by_density`` (``yes`` | ``no``).
 
     Args:
         grid, target, control: Run-time arguments.
@@ -101,6 +104,12 @@ class FieldMetrics:
         alpha = getattr(self.control, "alpha", None)
         if isinstance(alpha, float):
             run.theory["rate_exact"] = repr((alpha + self.sigma) * lam)
+        uses = getattr(self.control, "uses", None)
+        if isinstance(uses, str):
+            run.theory["law_uses"] = uses
+        divides = getattr(self.control, "divides_by_density", None)
+        if isinstance(divides, bool):
+            run.theory["law_divides_by_density"] = "yes" if divides else "no"
 
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
         """The step's field metrics."""
