@@ -70,6 +70,7 @@ SHARED_KEYS = frozenset(
         "log.positions_every",
         "log.w2_every",
         "log.floor_draws",
+        "log.floor_cache",
         "log.progress",
         "log.live",
         "log.live_host",
@@ -93,11 +94,15 @@ PRESENTATION_KEYS = (
     "log.live",
     "log.live_host",
     "log.live_port",
+    "log.floor_cache",
     "observers.progress",
     "observers.live",
+    "observers.swarm.floor_cache",
 )
-"""Keys (and observers) that change how a run is shown, not what it computes or logs
-(left out of the config hash, :func:`harness.identity.config_hash`)."""
+"""Keys (and observers) that change how a run is shown, or where it keeps the finite-N
+floors it reuses (:mod:`harness.floor_cache`; only the ``theory`` record's
+``swarm_floor_source`` says whether they were computed or read), not what it computes
+or logs (left out of the config hash, :func:`harness.identity.config_hash`)."""
 
 _REFERENCE = re.compile(r"\$\{\s*([A-Za-z_][\w.]*)\s*\}")
 

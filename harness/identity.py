@@ -91,13 +91,23 @@ def config_hash(cfg: DictConfig) -> str:
 
 def _hash(data: dict) -> str:
     """:func:`config_hash` of a resolved config as plain containers (not modified)."""
-    kept = {key: dict(value) if isinstance(value, dict) else value for key, value in data.items()}
-    for key in PRESENTATION_KEYS:
-        block, _, leaf = key.partition(".")
-        if isinstance(kept.get(block), dict):
-            kept[block].pop(leaf, None)
+    kept = _without(data, [key.split(".") for key in PRESENTATION_KEYS])
     text = json.dumps(kept, sort_keys=True, default=repr, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _without(data: dict, paths: list[list[str]]) -> dict:
+    """A copy of ``data`` without the keys at ``paths`` (each a list of nested keys); the
+    dicts on those paths are copied, everything else is shared.
+    """
+    out = dict(data)
+    for first in {path[0] for path in paths}:
+        rest = [path[1:] for path in paths if path[0] == first]
+        if any(not r for r in rest):
+            out.pop(first, None)
+        elif isinstance(out.get(first), dict):
+            out[first] = _without(out[first], rest)
+    return out
 
 
 def provenance(seed: int) -> dict[str, str]:

@@ -18,7 +18,8 @@ and split the error at the agent level into estimation, finite-N and control par
 empirical measure and ``K_h`` the KDE's kernel with its wall images; and ``swarm_w2``,
 an optimal-transport distance between the robots and ``p_*`` (length). The finite-N
 floor of ``swarm_l2`` and ``swarm_w2`` (N robots drawn independently from ``p_*``) is
-computed once per run (:meth:`SwarmTruth.floors`) and logged in the ``theory`` record.
+computed once per content (:meth:`SwarmTruth.floors`, reused across runs by
+:mod:`harness.floor_cache`) and logged in the ``theory`` record.
 It is the spread of *independent* robots, not a lower bound: feedback can spread a
 swarm more evenly than independent samples, so a controlled swarm may sit below it.
 
@@ -33,14 +34,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.components import Control, integer, number
+from harness import floor_cache, swarm_metrics
+from harness.components import Control, integer, number, require
 from harness.densities import Target
+from harness.floor_cache import FloorCache
 from harness.grid import Grid
 from harness.kde import KDE
 from harness.observers import RunContext, Status
 from harness.records import StepRecord
 from harness.smoothing import Smoother, smoothed_target
-from harness.swarm_metrics import TargetMeasure, floors, swarm_w2, w2_method
+from harness.swarm_metrics import TargetMeasure, swarm_w2, w2_method
 from harness.theory import lyapunov, poincare_constant
 
 SWARM_KEYS = ("swarm_l2", "swarm_w2", "est_swarm_l2", "limit_swarm_l2", "limit_target_l2")
@@ -130,8 +133,10 @@ class SwarmTruth:
     finite-N floor of :meth:`floors`.
 
     As the observer ``swarm`` it adds these metrics to every step's values and, at the
-    start, the finite-N floors (:meth:`floors`) to the ``theory`` record, drawn from the
-    stream ``[seed, 2]``, apart from the run's own.
+    start, the finite-N floors to the ``theory`` record (:meth:`floor_record`): drawn
+    from the stream ``[seed, 2]``, apart from the run's own, or read back bit-identical
+    from the floor cache when the same content was computed before
+    (:mod:`harness.floor_cache`).
 
     Args:
         grid: The grid (run-time argument).
@@ -143,6 +148,8 @@ class SwarmTruth:
         w2_every: Steps between evaluations of ``swarm_w2`` (the transport is costlier).
         floor_draws: Monte-Carlo draws of the finite-N floors (``>= 2``).
         seed: The run's seed.
+        floor_cache: Directory of the floor cache (``~`` expanded); None or ``""``:
+            the floors are computed every run.
         plant: The run's plant (run-time argument): without an ``N -> infinity`` limit
             (its ``has_limit`` false: a law without a mean-field form) the two terms
             against the limit, ``limit_swarm_l2`` and ``limit_target_l2``, are None.
@@ -162,6 +169,7 @@ class SwarmTruth:
         w2_every: int,
         floor_draws: int = 30,
         seed: int = 0,
+        floor_cache: str | None = None,
         plant: object = None,
     ) -> None:
         self.grid, self.target = grid, target
@@ -171,6 +179,13 @@ class SwarmTruth:
         self.total_steps = steps
         self.floor_draws = integer("floor_draws", floor_draws, 2)
         self.seed = integer("seed", seed, 0)
+        require(
+            floor_cache is None or isinstance(floor_cache, str),
+            "floor_cache",
+            floor_cache,
+            "a directory, or null or '' for no floor cache",
+        )
+        self.cache = FloorCache(floor_cache) if floor_cache else None
         self.run: RunContext | None = None
         self.kde = KDE(grid, bandwidth, mirror=mirror, method=method)
         self.smoother = Smoother(grid, bandwidth, mirror)
@@ -206,8 +221,7 @@ class SwarmTruth:
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
         """The step's swarm metrics; at the start, the floors for its robots."""
         if rec.step == 0 and rec.positions is not None and self.run is not None:
-            rng = np.random.default_rng([self.seed, 2])
-            self.run.theory.update(self.floors(rec.positions.shape[1], rng, self.floor_draws))
+            self.run.theory.update(self.floor_record(rec.positions.shape[1]))
         values.update(self(rec))
 
     def finalize(self, status: Status) -> None:
@@ -225,6 +239,69 @@ class SwarmTruth:
             self._measures[refine] = _target_measure(self.target, measure_grid(self.grid), refine)
         return self._measures[refine]
 
+    def floor_seed(self) -> list[int]:
+        """The entropy of the floors' generator, ``default_rng([seed, 2])``."""
+        return [self.seed, 2]
+
+    def measure_inputs(self, n_robots: int) -> dict[str, object]:
+        """The target measure of ``swarm_w2`` for ``n_robots`` and the transport's
+        settings, as plain values for the floors' key (:mod:`harness.floor_cache`):
+        method, refinement, grid, the SHA-256 of its atoms and masses, the EMD threshold
+        and the sliced distance's directions.
+        """
+        method = w2_method(n_robots)
+        measure = self.measure(n_robots)
+        return {
+            "method": method,
+            "refine": MEASURE_REFINE[method],
+            "grid": floor_cache.grid_inputs(measure_grid(self.grid)),
+            "points_sha256": floor_cache.array_digest(measure.points),
+            "weights_sha256": floor_cache.array_digest(measure.weights),
+            "emd_max_robots": swarm_metrics.EMD_MAX_ROBOTS,
+            "n_projections": swarm_metrics.N_PROJECTIONS,
+        }
+
+    def floor_inputs(self, n_robots: int) -> dict[str, object] | None:
+        """Everything the floors for ``n_robots`` depend on
+        (:func:`harness.floor_cache.floor_inputs`); None for a target without a faithful
+        content description, or without a continuous density (no floors).
+        """
+        if self.target.density is None:
+            return None
+        return floor_cache.floor_inputs(
+            target=self.target,
+            grid=self.grid,
+            kde=self.kde,
+            smoothed_target=self.smoothed_target,
+            measure=self.measure_inputs(n_robots),
+            n_robots=n_robots,
+            draws=self.floor_draws,
+            seed=self.floor_seed(),
+        )
+
+    def floor_record(self, n_robots: int) -> dict[str, str]:
+        """The ``theory`` record's floors for ``n_robots`` robots (:meth:`floors`, drawn
+        from ``default_rng([seed, 2])``), read from the floor cache when it holds them
+        for the same content, else computed and stored there; with
+        ``swarm_floor_source`` (``computed`` | ``cache``) and, when the target has a
+        content key, ``swarm_floor_key`` (the SHA-256 of the inputs,
+        :func:`harness.floor_cache.floor_key`). Empty when the target has no continuous
+        density to sample.
+        """
+        if self.target.density is None:
+            return {}
+        inputs = self.floor_inputs(n_robots)
+
+        def compute() -> dict[str, str]:
+            rng = np.random.default_rng(self.floor_seed())
+            return self.floors(n_robots, rng, self.floor_draws)
+
+        found, source = floor_cache.cached(self.cache, inputs, compute)
+        out = {**found, "swarm_floor_source": source}
+        if inputs is not None:
+            out["swarm_floor_key"] = floor_cache.floor_key(inputs)
+        return out
+
     def floors(self, n_robots: int, rng: np.random.Generator, draws: int) -> dict[str, str]:
         """The finite-N floors of ``swarm_l2`` and ``swarm_w2`` for ``n_robots`` robots,
         as string values for the ``theory`` record: mean, 2.5 and 97.5 percentiles and
@@ -234,7 +311,7 @@ class SwarmTruth:
         density = self.target.density
         if density is None:
             return {}
-        bands = floors(
+        bands = swarm_metrics.floors(
             density,
             self.grid,
             self.kde,

@@ -7,6 +7,7 @@ every config group found in ``conf/``, so a new option is tested without editing
 
 import copy
 import functools
+import os
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -16,6 +17,11 @@ from omegaconf import DictConfig
 from harness.api import CONFIG_DIR, compose
 from harness.densities import DEFAULT_TARGET, Target
 from harness.grid import Grid
+
+# The tests' runs compute their finite-N floors (log.floor_cache defaults to this
+# variable): no files in the user's cache, and two runs of a test log the same theory
+# record. tests/test_floor_cache.py gives the cache a directory of its own.
+os.environ["DENSITYLOOP_FLOOR_CACHE"] = ""
 
 GROUPS = ("plant", "estimator", "control", "target", "init", "experiment")
 SMOKE = (
