@@ -82,6 +82,11 @@ observers read (allowed also when a config leaves an observer out); any other ke
 outside the component nodes must be read by a component through interpolation
 (:func:`check_unread`)."""
 
+DEFAULT_UNREAD = {"agents.localisation_noise": 0.0}
+"""Keys of the shared blocks that a component may leave unread at these values (a
+feature left off, such as a plant of one's own without localisation error); set to
+anything else, nothing reading them is refused like any unread key."""
+
 LOGGED_BLOCKS = ("analysis",)
 """Optional blocks that nothing in a run reads and every run logs (in the ``config``
 record): ``analysis``, a study preset's declaration of its analysis, which
@@ -242,6 +247,8 @@ def check_unread(cfg: DictConfig) -> None:
     for key, value in _leaves(outside):
         if key in SHARED_KEYS or key in referenced:
             continue
+        if key in DEFAULT_UNREAD and value == DEFAULT_UNREAD[key]:
+            continue  # a plant of one's own need not read a feature left off
         if any(key.startswith(r + ".") for r in referenced):
             continue
         raise ConfigError(

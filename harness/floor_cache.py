@@ -34,7 +34,7 @@ compute the same floor at once both succeed and leave one whole file. A file is 
 only when it parses, its inputs equal the requested ones, its key is theirs and the
 checksum matches its floors; otherwise a :class:`FloorCacheWarning` says why, and the
 floors are computed and the file rewritten. A directory that cannot be read or written
-costs a warning and the computation, never the run. No pickle: JSON only.
+costs a warning and the computation, never the run. JSON only, never a deserialiser that runs code.
 """
 
 from __future__ import annotations

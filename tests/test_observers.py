@@ -15,7 +15,7 @@ from harness.jobs import CheckCallback, checked
 from harness.observers import DivergenceGuard, RunContext, Status
 from harness.run import run
 
-ORDER = ["metrics", "swarm", "estimator", "guard", "live", "log", "progress"]
+ORDER = ["metrics", "swarm", "motion", "estimator", "guard", "live", "log", "progress"]
 
 
 def test_default_observers_are_built_in_config_order(compose, smoke):
@@ -99,7 +99,7 @@ def test_observers_see_steps_in_order_and_finalise_in_reverse(compose, smoke, tm
     assert names[-2:] == [("last", "finalize"), ("first", "finalize")]
     # the first sees the step before any metric is in; the last sees them all
     handles = [c for c in calls if c[1] == "handle"]
-    assert handles == [("first", "handle", []), ("last", "handle", ["eps_g_l2"])]
+    assert handles == [("first", "handle", []), ("last", "handle", ["effort"])]
 
 
 def test_a_failing_finalize_does_not_stop_the_others(compose, smoke, tmp_path):
