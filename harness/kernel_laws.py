@@ -308,8 +308,9 @@ class MMDControl:
     only under conditions (Arbel et al.: a bound on a negative Sobolev distance along
     the flow); it can stall at particle configurations where the witness gradient
     vanishes on the particles, and MMD is not displacement convex. The paper regularises
-    it by noise injection (evaluating the gradient at noisy positions) and proves
-    convergence for a suitable noise schedule; here the robots' own noise plus the
+    it by noise injection (evaluating the gradient at noisy positions), with a
+    convergence result under a condition on the noise level; here the robots' own noise
+    plus the
     compensation make the mean field the gradient flow of ``F`` with the entropy term,
     whose only steady state is ``p_*`` (above): ``F`` is a Lyapunov function (no rate is
     claimed beyond the linearisation). Linearised about ``p_*``, a perturbation ``phi``

@@ -115,7 +115,7 @@ def test_image_kernel_is_the_kdes_mirrored_kernel_and_its_odd_twin_vanishes_on_w
         assert np.abs((xp - xm) / (2 * h) - d_point).max() < 1e-6 * scale
     g = image_kernel(u, x, LENGTH, 0.0, 1.0, -1)[0]
     # the Dirichlet kernel vanishes with the point or the source on a wall (up to the
-    # images left out, exp(-(L / l)^2 / 2) = 1e-60 of a peak here, and round-off)
+    # images left out, exp(-(L / l)^2 / 2) = 5e-61 of a peak here, and round-off)
     assert np.abs(g[:, [0, -1]]).max() < 1e-14 * g.max()
     assert np.abs(g[[-4, -1], :]).max() < 1e-14 * g.max()
     assert np.abs(image_kernel(u, x, LENGTH, 0.0, 1.0, +1)[2][:, [0, -1]]).max() < 1e-12
