@@ -28,7 +28,7 @@ matrices. With robots the sources are the fine binning nodes of the KDE of bandw
 ``l`` (spacing about ``l / (1.2 bin_factor)``, :func:`harness.kde.binning_nodes`) and the
 weights the robots' linear binning (:func:`harness.compiled.binning.linear_binning`, as in
 :meth:`harness.kde.KDE.binned`), so a call costs ``O(N)`` for the binning plus ``O(B^2
-n)`` for the sums: 0.13 to 0.18 ms at ``N = 1024`` and 0.7 to 0.9 ms at ``N = 65536``
+n)`` for the sums: 0.1 to 0.2 ms at ``N = 1024`` and 0.7 to 0.9 ms at ``N = 65536``
 (30 x 30 grid, ``l = 0.06``, one BLAS thread; the binning is the KDE's compiled
 parallel one), against 0.04 to 0.05 ms for the mean-field form. From the robots'
 weights ``w`` the laws subtract ``W*_n = int hat_n p_*``, the weights' expectation for
