@@ -511,7 +511,7 @@ class LangevinControl(FieldLaw):
     p_*`` decays at the rate ``sigma lambda`` of the ``p_*``-weighted Poincare constant
     ``lambda`` (the paper's rate ``(alpha + sigma) lambda`` at ``alpha = 0``). It needs
     no estimate, so estimation errors do not reach it: its ISS gain is zero, and its
-    convergence is as slow as the noise (``1 / (sigma lambda)``; about 200 s for the
+    convergence is as slow as the noise (``1 / (sigma lambda)``; about 2100 s for the
     paper's target and ``sigma = 5e-5``). Discretised as :func:`paper_law` at ``alpha =
     0`` (the face drift makes ``p_*`` the exact discrete steady state).
 

@@ -341,6 +341,9 @@ class MMDControl:
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = False
 
+    uses = "positions, target smoothed by the kernel"
+    divides_by_density = False
+
     def __init__(
         self,
         target: Target,
@@ -542,6 +545,9 @@ class SVGDControl:
     gives_field: ClassVar[bool] = True
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = False
+
+    uses = "positions, target score"
+    divides_by_density = False
 
     def __init__(
         self,
