@@ -59,10 +59,13 @@ reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write it
 	@echo "log: $(RUN_DIR)/run.mcap"
 	@echo "figures:"; ls -1 figures/* figures/meanfield/*
 
-STUDIES := iss_gain conv_grid conv_sigma conv_alpha agents_n debias_n conv_grid_agents
+STUDIES := laws_n laws_iss heat_floor laws_noise conv_grid conv_sigma conv_alpha agents_n \
+	debias_n conv_grid_agents
 # run alone (make sweep-NAME), beyond the sweeps' 30-minute budget: distributed_r
-# (decentralised loop against the communication radius, 28 min on 2 cores)
-EXTRA_STUDIES := distributed_r
+# (decentralised loop against the communication radius, 28 min on 2 cores) and iss_gain
+# (the paper's and the heat law's gain under smooth errors from the paper's start; the
+# smooth panel of laws_iss measures the same from p_*)
+EXTRA_STUDIES := distributed_r iss_gain
 
 sweeps: $(STAMP) ## Run the study presets (about 21 min on 2 cores) and write figures/sweeps/
 	@for s in $(STUDIES); do \
