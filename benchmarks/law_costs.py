@@ -3,7 +3,7 @@ assignment.
 
     python -m benchmarks.law_costs --calls [--n 1024] [--grid 30] [--repeat 50]
     python -m benchmarks.law_costs --solve [--sizes 1024 4096 16384]
-    python -m benchmarks.law_costs --loop [--n 1024] [--steps 1000] [--laws paper psg ...]
+    python -m benchmarks.law_costs --loop [--n 1024] [--steps 500] [--rounds 6] [--laws paper ...]
 
 ``--calls`` times one call of each law (median over ``repeat``; BLAS on one thread as in
 the run): a step inside a period (velocities toward the goals) and a step that starts a
@@ -19,7 +19,9 @@ point), and up to :data:`harness.assignment.EXACT_MAX` robots compares
 certified or not, rounds).
 
 ``--loop`` steps the closed loop (the agents plant, the run's estimator, the law; no
-observers) and prints steps per second, counting each period's solve.
+observers) and prints steps per second, counting each period's solve (500 steps are 5
+periods of the default 1 s); the laws take turns, round after round, so that load from
+elsewhere slows them alike.
 """
 
 from __future__ import annotations
@@ -133,8 +135,12 @@ def solve(sizes: list[int]) -> None:
             print(line, flush=True)
 
 
-def loop(n: int, steps: int, laws: list[str], estimator: str) -> None:
-    """Closed-loop steps per second (``--loop``)."""
+def loop(n: int, steps: int, laws: list[str], estimator: str, rounds: int) -> None:
+    """Closed-loop steps per second (``--loop``): the laws' loops are stepped in turn,
+    ``steps`` at a time, ``rounds`` times (so that a busy machine slows them alike); the
+    best and the median round per law.
+    """
+    loops = {}
     for law in laws:
         cfg = compose(
             [f"control={law}", f"agents.n={n}", f"estimator={estimator}", "log.progress=off"]
@@ -150,12 +156,19 @@ def loop(n: int, steps: int, laws: list[str], estimator: str) -> None:
         )
         run.start()
         run.step()  # warm up (compilation)
-        t0 = time.perf_counter()
-        for _ in range(steps):
-            run.step()
-        spent = time.perf_counter() - t0
+        loops[law] = run
+    spent: dict[str, list[float]] = {law: [] for law in laws}
+    for _ in range(rounds):
+        for law, run in loops.items():
+            t0 = time.perf_counter()
+            for _ in range(steps):
+                run.step()
+            spent[law].append((time.perf_counter() - t0) / steps)
+    for law, times in spent.items():
+        best, median = min(times), float(np.median(times))
         print(
-            f"  {law:13s} {steps / spent:7.1f} steps/s ({1e3 * spent / steps:.3f} ms/step)",
+            f"  {law:13s} best {1 / best:7.1f} steps/s ({1e3 * best:.3f} ms/step), "
+            f"median {1 / median:7.1f} steps/s ({1e3 * median:.3f} ms/step)",
             flush=True,
         )
 
@@ -169,7 +182,8 @@ def main() -> None:
     parser.add_argument("--grid", type=int, default=30)
     parser.add_argument("--repeat", type=int, default=50)
     parser.add_argument("--sizes", type=int, nargs="+", default=[1024, 4096, 16384])
-    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--steps", type=int, default=500)
+    parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--estimator", default="filters")
     parser.add_argument(
         "--laws", nargs="+", default=["paper", "langevin", "psg", "psg_feedback", "ot"]
@@ -181,8 +195,8 @@ def main() -> None:
         if args.solve:
             solve(args.sizes)
         if args.loop:
-            print(f"N = {args.n}, estimator={args.estimator}, {args.steps} steps")
-            loop(args.n, args.steps, args.laws, args.estimator)
+            print(f"N = {args.n}, estimator={args.estimator}, {args.rounds} x {args.steps} steps")
+            loop(args.n, args.steps, args.laws, args.estimator, args.rounds)
 
 
 if __name__ == "__main__":

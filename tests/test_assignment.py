@@ -15,6 +15,8 @@ from harness.assignment import (
     large_assignment,
     quantise,
     transport_cost,
+    violations,
+    violations_reference,
 )
 from harness.build import build
 from harness.densities import DEFAULT_TARGET, Target
@@ -195,3 +197,14 @@ def test_a_swarm_of_another_size_is_refused():
     law = AssignmentControl(target, robots=10)
     with pytest.raises(ValueError, match="10 points"):
         law(ControlInput(0.0, Estimate(target.p, target.grad), np.full((2, 11), 0.5)))
+
+
+@pytest.mark.parametrize("n", [300, 2500])
+def test_the_compiled_check_finds_the_numpy_statements_pairs(n):
+    gen = np.random.default_rng(n)
+    x, y = gen.random((n, 2)), gen.random((n, 2))
+    u, w = gen.normal(0, 0.05, n), gen.normal(0, 0.05, n)
+    rows, cols = violations(x, y, u, w, 1e-9, 8)
+    ref_rows, ref_cols = violations_reference(x, y, u, w, 1e-9, 8)
+    assert rows.size > n  # many violations, many rows full
+    assert set(zip(rows, cols, strict=True)) == set(zip(ref_rows, ref_cols, strict=True))

@@ -219,6 +219,23 @@ def test_feedback_moves_robots_only_out_of_the_cell_above_its_target():
     assert set(goal_cells) == {hot - 1, hot + 1, hot - grid.nx, hot + grid.nx}
 
 
+def test_feedback_relays_excess_toward_the_nearest_deficit():
+    grid = Grid.square(10)
+    law = FeedbackGuidance(Target.from_values(grid, np.ones(grid.shape)), gain=1.0)
+    mass = law.masses.copy()
+    mass[4:7, 4:7] *= 2.0  # an over-full block
+    mass[:, :2] -= 9 * law.masses[0, 0] / 20  # its excess missing from the two left columns
+    m = law.matrix(mass / grid.cell_area).toarray()
+    centre = 5 * grid.nx + 5  # its neighbours all have an excess: it relays to the left
+    moves = np.flatnonzero(m[:, centre])
+    assert set(moves) == {centre, centre - 1}
+    assert m[centre - 1, centre] == pytest.approx(0.5)  # g (2 v - v) / 2 v
+    edge = 5 * grid.nx + 6  # right edge of the block: its right neighbour is at target
+    assert set(np.flatnonzero(m[:, edge])) == {edge, edge - 1}
+    at_target = 5 * grid.nx + 8
+    assert m[at_target, at_target] == 1.0
+
+
 def test_feedback_chain_properties_on_random_estimates():
     """Column-stochastic, moves only out of cells with an excess and only to neighbours,
     and the expected distance to the target never grows (exact estimates, gain <= 1)."""
