@@ -474,8 +474,12 @@ class AssignmentControl:
     and every step ``u_i = (y_{pi(i)} - x_i) / (time left in the period)``, capped at
     ``v_max`` (:mod:`harness.waypoints`): robot ``i`` reaches ``y_{pi(i)}`` by the
     period's end when ``v_max >= |y_{pi(i)} - x_i| / T`` and ``sigma = 0``, exactly up to
-    round-off. An optimal assignment moves the robots along the discrete optimal
-    transport (its paths do not cross: cyclical monotonicity).
+    round-off. Without cap and noise the robots then move along the displacement
+    interpolation of the discrete optimal transport, ``x_i + (s / T) (y_{pi(i)} -
+    x_i)``, on which no two robots are at one place at one time ``0 < s < T``: two that
+    were would have ``(T - s) (x_1 - x_2) = -s (y_1 - y_2)``, so ``<x_1 - x_2, y_1 -
+    y_2> < 0``, and exchanging their points would lower the cost (the cyclical
+    monotonicity of an optimal assignment for the squared cost).
 
     Inputs: the robots' positions at the start of each period and the time; no
     estimate, no density in a denominator.
@@ -497,7 +501,10 @@ class AssignmentControl:
     ``sqrt(2 sigma T) / 2`` is smaller than it (at the paper's values, 6 times smaller: a
     KDE of bandwidth ``h`` = 0.04 smooths it out). The next period's assignment may
     exchange points between robots whose strays cross (only when two points are within
-    the noise's scale of each other); nothing else moves.
+    the noise's scale of each other); nothing else moves. Measured in the paper's
+    setting (1024 robots, filters, seed 0): ``swarm_l2`` 0.036 from 10 s on (1024
+    independent draws from ``p_*``: about 0.22), ``swarm_w2`` 0.0176 (of which up to
+    0.0136 is the metric's own cell-centre quantisation of ``p_*``).
 
     Args:
         target: The target on the grid (run-time argument).

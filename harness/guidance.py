@@ -252,7 +252,9 @@ class MetropolisGuidance(_Guidance):
     time ``1 / (1 - lambda_2)`` of 531 periods, about what a nearest-neighbour random
     walk needs to cross 30 cells (at ``T`` = 1 s, 8.9 min, against the 34 s time
     constant of the paper's loop; a shorter period shortens it in proportion and speeds
-    the robots up in proportion).
+    the robots up in proportion). Measured in the paper's setting (1024 robots from the
+    paper's start box, seed 0): ``swarm_l2`` 0.63 at 10 s, 0.29 at 60 s, 0.31 at 100 s,
+    where the paper's law has 0.20 and 1024 independent draws from ``p_*`` about 0.22.
 
     Inputs: the robots' positions at the start of each period (their cells) and the
     time. A density in a denominator: ``v_j`` of the target in ``F``, never an
