@@ -30,7 +30,7 @@ so a solve made once per period costs a hundredth of itself per step; the noise 
 a robot by ``sqrt(2 sigma T)`` = 0.01 per period at the paper's ``sigma``, under a third
 of a 30 x 30 cell, so the cell a robot is counted in at a period's start is, within
 that, the one it was sent to; and a move to a point of a neighbouring cell, at most
-two cells' widths (0.067) in ``T``, asks for speeds of the paper's law (its robots'
+``sqrt(5)`` cells' widths (0.075) in ``T``, asks for speeds of the paper's law (its robots'
 mean speed is 0.08 at the start from the paper's box and 0.02 after 1 s). A shorter
 period speeds the chains' mixing in proportion and the robots with it.
 """
