@@ -516,11 +516,15 @@ class AssignmentControl:
     Attributes:
         points: The quantisation ``(2, N)`` (length).
         assignment: The current period's ``pi`` (None before the first call).
+        uses: What the law reads, as a phrase (logged in the ``theory`` record).
+        divides_by_density: False: no density in a denominator.
     """
 
     gives_field: ClassVar[bool] = True
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = True
+    uses: ClassVar[str] = "positions, target cell masses"
+    divides_by_density: ClassVar[bool] = False
 
     def __init__(
         self,

@@ -163,11 +163,17 @@ class CellChain:
 class _Guidance:
     """What the two guidance laws share: parameters, the period clock and the robots'
     goals (a ``NaN`` goal holds the robot).
+
+    Attributes:
+        uses: What the law reads, as a phrase (logged in the ``theory`` record).
+        divides_by_density: Whether a density estimate sits in a denominator.
     """
 
     gives_field: ClassVar[bool] = True
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = True
+    uses: ClassVar[str] = "positions, target cell masses"
+    divides_by_density: ClassVar[bool] = False
 
     def __init__(self, target: Target, period: float, seed: int, v_max: float | None) -> None:
         self.target = target
@@ -405,6 +411,9 @@ class FeedbackGuidance(_Guidance):
     Attributes:
         masses: The target masses ``v`` the estimate is compared with, ``(ny, nx)``.
     """
+
+    uses: ClassVar[str] = "positions, estimate, target cell masses"
+    divides_by_density: ClassVar[bool] = True  # m_hat_j in a_j, bounded (class docstring)
 
     def __init__(
         self,

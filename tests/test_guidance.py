@@ -319,6 +319,19 @@ def test_closed_loop_runs(law, estimator, compose, smoke):
         assert all(v is None or math.isfinite(v) for v in metrics.values())
     first, last = records[0][0].positions, records[-1][0].positions
     assert not np.array_equal(first, last)  # the robots moved
+    assert max(m["peak_speed"] for _, m in records) > 0  # the motion metrics see them
+
+
+@pytest.mark.parametrize(("law", "divides"), [("psg", "no"), ("psg_feedback", "yes"), ("ot", "no")])
+def test_the_laws_say_what_they_use(law, divides, compose, smoke, tmp_path):
+    from analysis.load import load_run
+    from harness.run import run
+
+    result = run(compose([f"control={law}", *smoke, "sim.t_final=0.04"]), tmp_path)
+    assert result.state == "completed", result.reason
+    theory = load_run(tmp_path).metadata["theory"]
+    assert "positions" in theory["law_uses"] and "target cell masses" in theory["law_uses"]
+    assert theory["law_divides_by_density"] == divides
 
 
 @pytest.mark.parametrize("law", ["psg", "psg_feedback"])
