@@ -1,6 +1,7 @@
 """Compiled (numba) loops of the harness, one module per domain they serve.
 
 - :mod:`~harness.compiled.agents`: the robots' Euler-Maruyama step;
+- :mod:`~harness.compiled.assignment`: the optimality check of ot's large assignment;
 - :mod:`~harness.compiled.binning`: the KDE's linear binning;
 - :mod:`~harness.compiled.fokker_planck`: the assembly of ``A(v)``, the implicit
   solvers (Jacobi-split and truncated Neumann series, red-black Gauss-Seidel), the
