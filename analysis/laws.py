@@ -38,9 +38,9 @@ LAW_NAMES = {
     "LangevinControl": "langevin",
     "MMDControl": "mmd",
     "SVGDControl": "svgd",
-    "GuidanceControl": "psg",
-    "FeedbackGuidanceControl": "psg_feedback",
-    "TransportControl": "ot",
+    "MetropolisGuidance": "psg",
+    "FeedbackGuidance": "psg_feedback",
+    "AssignmentControl": "ot",
 }
 """The config option of each law class (``control=<option>``)."""
 

@@ -216,13 +216,11 @@ class Swarm:
 
     def histogram(self) -> np.ndarray:
         """Empirical density on the grid: robots per cell / (N cell area),
-        shape ``(ny, nx)``, grid integral 1 (1 / length^2).
+        shape ``(ny, nx)``, grid integral 1 (1 / length^2). A robot on the upper wall
+        counts in the last cell (as :func:`numpy.histogram2d` counts it, the reference).
         """
         g = self.grid
-        h, _, _ = np.histogram2d(
-            self.positions[1],
-            self.positions[0],
-            bins=(g.ny, g.nx),
-            range=((g.y0, g.y1), (g.x0, g.x1)),
-        )
-        return h / (self.n * g.cell_area)
+        col = np.minimum(((self.positions[0] - g.x0) / g.dx).astype(np.intp), g.nx - 1)
+        row = np.minimum(((self.positions[1] - g.y0) / g.dy).astype(np.intp), g.ny - 1)
+        counts = np.bincount(row * g.nx + col, minlength=g.size)
+        return counts.reshape(g.shape) / (self.n * g.cell_area)

@@ -31,6 +31,7 @@ from harness.components import (
     flag,
     integer,
     memory_estimate,
+    needs_robots,
     number,
 )
 from harness.control import sampled_data_dt_bound
@@ -445,9 +446,15 @@ def check_built(
     paper's law); a ``dt`` above the bound there makes the loop unstable on some grid
     mode and is refused. (Far from the target, at the start, the diffusivity can be
     larger, ``alpha max(p_0 / p_*)``; an overshoot there is transient and not refused.)
-    A law without :meth:`~harness.components.Control.feedback_diffusivity` (or returning
-    None) is not refused; a :class:`ConfigWarning` says the bound was not checked.
+    A law that smooths at a scale of its own (a ``resolution`` attribute, length: the
+    kernel laws of :mod:`harness.kernel_laws`, which read positions, not estimates) is
+    bounded at that scale. A law without :meth:`~harness.components.Control.feedback_diffusivity`
+    (or returning None) is not refused; a :class:`ConfigWarning` says the bound was not
+    checked, except for a law without a mean-field form (``needs_robots``), whose robots
+    steer to waypoints rather than follow a feedback field, and have no such bound.
     """
+    if needs_robots(control):
+        return
     rate = getattr(control, "feedback_diffusivity", None)
     diffusivity = rate(target.p) if rate is not None else None
     if diffusivity is None:
@@ -458,7 +465,8 @@ def check_built(
             stacklevel=2,
         )
         return
-    h = resolution(plant, estimator)
+    own = getattr(control, "resolution", None)
+    h = own if isinstance(own, float) else resolution(plant, estimator)
     bound = sampled_data_dt_bound(grid, diffusivity, h, cfg.dynamics.sigma)
     if cfg.sim.dt > bound:
         scale = "grid resolution" if h is None else f"resolution {h:g}"

@@ -333,8 +333,8 @@ class MMDControl:
         nodes: The binning nodes (those of :class:`harness.kde.KDE` of bandwidth ``l``).
         target_weights: ``W*``, the robots' expected binned weights at ``p_*``.
         drift: The compensation ``sigma grad log p_*`` as a field (zero without it).
-        resolution: ``l``, the smallest scale the feedback resolves (not read by the
-            harness's step bound, which takes the estimates' resolution).
+        resolution: ``l``, the smallest scale the feedback resolves (the sampled-data
+            step bound is taken at it, :func:`harness.checks.check_built`).
     """
 
     gives_field: ClassVar[bool] = True
@@ -435,8 +435,7 @@ class MMDControl:
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``beta max(p0)``: linearised about ``p0``, the feedback's flux is ``beta p0
         grad(k_l * phi)``, a diffusion of local diffusivity ``beta p0`` smoothed by
-        ``k_l`` (which the step bound, taken at the estimates' resolution, leaves out:
-        with ``l`` larger than that resolution the bound is conservative).
+        ``k_l`` (the step bound takes that smoothing at the law's ``resolution``).
         """
         return self.beta * float(np.max(p0))
 

@@ -204,3 +204,14 @@ def test_hole_parameters_are_checked(compose, override, key):
 
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         build(compose(["plant=meanfield", "estimator=injected", override]))
+
+
+def test_swarm_histogram_counts_as_numpy_histogram2d(rng):
+    from harness.agents import Swarm
+
+    grid = Grid.square(7)
+    x = rng.uniform(0, 1, size=(2, 3000))
+    x[:, :3] = [[0.0, 1.0, 1.0], [1.0, 0.0, 1.0]]  # robots on the walls and corners
+    counts, _, _ = np.histogram2d(x[1], x[0], bins=(7, 7), range=((0, 1), (0, 1)))
+    expect = counts / (3000 * grid.cell_area)
+    np.testing.assert_array_equal(Swarm(grid, x, 0.0).histogram(), expect)
