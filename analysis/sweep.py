@@ -341,18 +341,31 @@ CONFIG_PREFIX = "cfg:"
 
 def varied(rows: list[dict[str, Any]]) -> list[str]:
     """Config keys (without the prefix) whose values differ between the rows, leaving
-    out the logging and progress keys and the observers' nodes (their values are the
-    public keys', such as ``observers.swarm.seed: ${seed}``).
+    out the logging and progress keys, the observers' nodes (their values are the
+    public keys', such as ``observers.swarm.seed: ${seed}``) and a component's copy of
+    the seed (a key equal to ``seed`` in every row that has it, such as
+    ``control.seed: ${seed}``).
     """
     keys = sorted({k for r in rows for k in r if k.startswith(CONFIG_PREFIX)})
     out = []
     for k in keys:
         key = k[len(CONFIG_PREFIX) :]
-        if key.startswith(("log.", "observers.")):
+        if key.startswith(("log.", "observers.")) or _copies_seed(rows, k):
             continue
         if len({repr(r.get(k)) for r in rows}) > 1:
             out.append(key)
     return out
+
+
+def _copies_seed(rows: list[dict[str, Any]], column: str) -> bool:
+    """Whether the config column ``column`` (a key other than ``seed``) holds the row's
+    seed wherever it is set.
+    """
+    seed = CONFIG_PREFIX + "seed"
+    if column == seed:
+        return False
+    found = [r for r in rows if r.get(column) is not None]
+    return bool(found) and all(r.get(column) == r.get(seed) for r in found)
 
 
 def value(row: dict[str, Any], key: str) -> Any:
