@@ -189,10 +189,10 @@ def coarse_assignment(
     3. In each cell ``B`` the robots routed there are assigned exactly to its points
        (:func:`exact_assignment`).
 
-    Measured against the exact assignment at 4096 robots (prototype): 1.003 times its
-    cost for a swarm crossing the domain, but up to 1.7 times near the fixed point,
-    where the exact cost is tiny and the cells' centroids too coarse; the sparse stage of
-    :func:`large_assignment` removes that.
+    Against the exact assignment at 4096 robots (``python -m benchmarks.law_costs
+    --solve``): close to its cost for a swarm crossing the domain, but far above it near
+    the fixed point, where the exact cost is tiny and the cells' centroids too coarse;
+    the sparse stage of :func:`large_assignment` removes that.
     """
     n = x.shape[0]
     m = side * side
@@ -501,10 +501,9 @@ class AssignmentControl:
     ``sqrt(2 sigma T) / 2`` is smaller than it (at the paper's values, 6 times smaller: a
     KDE of bandwidth ``h`` = 0.04 smooths it out). The next period's assignment may
     exchange points between robots whose strays cross (only when two points are within
-    the noise's scale of each other); nothing else moves. Measured in the paper's
-    setting (1024 robots, filters, seed 0): ``swarm_l2`` 0.036 from 10 s on (1024
-    independent draws from ``p_*``: about 0.22), ``swarm_w2`` 0.0176 (of which up to
-    0.0136 is the metric's own cell-centre quantisation of ``p_*``).
+    the noise's scale of each other); nothing else moves. Where the robots end up beside
+    the other laws: the study ``laws_n`` (``make sweep-laws_n``); ``swarm_w2`` cannot go
+    below the metric's own cell-centre quantisation of ``p_*``.
 
     Args:
         target: The target on the grid (run-time argument).

@@ -258,9 +258,8 @@ class MetropolisGuidance(_Guidance):
     time ``1 / (1 - lambda_2)`` of 531 periods, about what a nearest-neighbour random
     walk needs to cross 30 cells (at ``T`` = 1 s, 8.9 min, against the 34 s time
     constant of the paper's loop; a shorter period shortens it in proportion and speeds
-    the robots up in proportion). Measured in the paper's setting (1024 robots from the
-    paper's start box, seed 0): ``swarm_l2`` 0.63 at 10 s, 0.29 at 60 s, 0.31 at 100 s,
-    where the paper's law has 0.20 and 1024 independent draws from ``p_*`` about 0.22.
+    the robots up in proportion). Where the robots end up beside the other laws: the
+    study ``laws_n`` (``make sweep-laws_n``).
 
     Inputs: the robots' positions at the start of each period (their cells) and the
     time. A density in a denominator: ``v_j`` of the target in ``F``, never an
@@ -382,18 +381,15 @@ class FeedbackGuidance(_Guidance):
     estimate that averages over several robots per cell: with the robots' histogram
     itself (``estimator=exact``) at about one robot per cell (1024 robots, 900 cells),
     every occupied cell of low target mass has an excess and its empty neighbours a
-    deficit, and robots shuffle locally instead of leaving the low regions (measured:
-    ``swarm_l2`` 0.31 at 100 s, against 0.23 with the filters, ``g`` = 1). With the noise
+    deficit, and robots shuffle locally instead of leaving the low regions. With the noise
     ``sigma`` there is no fixed point of the robots themselves: holding robots diffuse
     (``sqrt(2 sigma T)`` per period, 0.01 at ``T`` = 1 s and the paper's ``sigma``, a
     third of a 30 x 30 cell), which every period moves about ``sigma T |Laplacian v|``
     of mass per unit area into the target's valleys, and the chain sends back ``g``
     times the excess it sees: a balance at a bias of order ``sigma T |Laplacian v| / g``
     (a percent of ``v`` for the default target, derived as an order of magnitude, not
-    measured). Measured in the paper's setting (1024 robots, filters, seed 0, one run
-    each): ``swarm_l2`` 0.23 at 100 s and 0.17 at 200 s with ``g`` = 1, 0.26 and 0.23
-    with ``g`` = 0.5; the paper's law 0.20 at 100 s; 1024 independent draws from
-    ``p_*`` have about ``(4 pi N h^2)^(-1/2)`` = 0.22.
+    measured). Where the robots end up beside the other laws: the study ``laws_n``
+    (``make sweep-laws_n``).
 
     Args:
         target: The target on the grid (run-time argument).

@@ -270,7 +270,8 @@ class MMDControl:
     expectation for robots drawn from ``p_*`` (the module docstring). Subtracting the
     binned target rather than ``k_l * p_*`` itself cancels the binning's bias at ``p =
     p_*``: the expected feedback there is 1.5e-4 of the largest feedback at the paper's
-    start instead of 4.9e-3 (measured, ``l = 0.06``, 30 x 30 grid). On the faces the
+    start instead of 4.9e-3 (``l = 0.06``, 30 x 30 grid; ``tests/test_kernel_laws.py``
+    bounds it). On the faces the
     feedback is the mean of the centres; the compensation sits on the faces as in
     :func:`harness.control.paper_law`. In the mean-field form both terms are quadratures
     of cell values at the centres (:class:`harness.smoothing.Smoother`'s kernel-matrix
@@ -279,14 +280,15 @@ class MMDControl:
 
     Robots interpolate the centre values bilinearly. Against the exact per-robot sum
     (:func:`mmd_feedback_reference`, ``O(N^2)``) the interpolated feedback errs by ``dx^2
-    / 8`` times its second derivatives at the kernel's scale, plus the binning: measured
-    (rms over the robots, relative to the exact feedback's rms; ``l = 0.06``, 30 x 30
-    grid, 400 to 1024 robots) 4 to 5 % with the swarm at the paper's start and 7 to 9 %
-    with the swarm drawn from ``p_*``, where the feedback is the swarm's fluctuation
-    alone; 14 % and 5 % there for ``l = 0.04`` and ``0.08``. At the centres the binned
-    sums err by 0.5 to 1 % (rms) against the plain sums. Within half a cell of a wall the
-    robots take the nearest centre's value, whose normal component is not zero (the
-    exact one is, at the wall); the reflection keeps them inside.
+    / 8`` times its second derivatives at the kernel's scale, plus the binning: by
+    ``tests/test_kernel_laws.py`` (rms over the robots, relative to the exact feedback's
+    rms; ``l = 0.06``, 30 x 30 grid, 400 to 1024 robots) 4 to 5 % with the swarm at the
+    paper's start and 7 to 9 % with the swarm drawn from ``p_*``, where the feedback is
+    the swarm's fluctuation alone; 14 % and 5 % there for ``l = 0.04`` and ``0.08``. At
+    the centres the binned sums err by 0.5 to 1 % (rms) against the plain sums. Within
+    half a cell of a wall the robots take the nearest centre's value, whose normal
+    component is not zero (the exact one is, at the wall); the reflection keeps them
+    inside.
 
     Fixed point with noise (derived). With the mean field ``d_t p = -div(p v) + sigma
     Laplacian p`` and the compensation,
@@ -482,7 +484,8 @@ class SVGDControl:
     for the default target). The ``W*`` term is zero in the continuum (Stein's identity
     with these kernels, below) and cancels the binning's bias at ``p = p_*``: the
     expected velocity there is 1.2e-4 of the largest at the paper's start instead of
-    4.1e-3 (measured, ``l = 0.06``, 30 x 30 grid); it also makes the fixed point the
+    4.1e-3 (``l = 0.06``, 30 x 30 grid; ``tests/test_kernel_laws.py`` bounds it); it also
+    makes the fixed point the
     binned ``p_*`` whatever the score's error. Against the plain sum over the robots
     (:func:`svgd_feedback_reference`) the binned centres err by 0.5 to 1 % (rms); the
     robots, which interpolate the centres bilinearly, by 4 to 5 % (rms over the robots,
