@@ -225,7 +225,8 @@ class InjectedEstimator:
         inside = (x - cx) ** 2 + (y - cy) ** 2 <= (self.hole_radius / 2) ** 2
         pw = np.maximum(p, 0.0) * self.well
         mean = g.integrate(pw) / g.area
-        depth = self.delta / g.l2(pw - mean)
+        norm = g.l2(pw - mean)
+        depth = self.delta / norm if norm > 0 else 0.0
         return inside, p * (1 - depth * np.exp(-1 / 8)) + depth * mean
 
     def initialize(self, inp: StepInput) -> Estimate:

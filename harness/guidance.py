@@ -395,8 +395,7 @@ class FeedbackGuidance(_Guidance):
         target: The target on the grid (run-time argument).
         gain: ``g`` in ``(0, 1]``: the expected fraction of a cell's estimated excess
             that leaves per period. The default 1 sends the whole estimated excess each
-            period; it converged faster than 0.5 in the paper's setting (above), the
-            filters' estimate being smooth enough that the churn it adds stays small.
+            period (the chain's L1 descent above holds for every ``g <= 1``).
         period: ``T > 0`` (s) between decisions.
         seed: The run's seed; the law draws from ``np.random.default_rng([seed, 4])``.
         v_max: Speed cap (length / s), or None.

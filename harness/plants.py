@@ -56,12 +56,14 @@ class Agents:
         bandwidth: KDE bandwidth ``h > 0`` (length), at most the domain side.
         mirror: Wall images in the KDE.
         method: KDE evaluation, ``auto`` | ``exact`` | ``binned``.
-        localisation_noise: Standard deviation ``s >= 0`` (length) of the localisation
-            error: the estimator and the law see ``X_i + s xi_i`` (``xi_i`` standard
-            normal, fresh every step, drawn from the run's generator after the robots
-            move; reflected into the domain at the walls), while the robots move from
-            their true positions and the swarm metrics use the true ones. 0 draws
-            nothing.
+        localisation_noise: Standard deviation ``s`` (length), ``0 <= s <=`` a quarter of
+            the domain side, of the localisation error: the estimator and the law see
+            ``X_i + s xi_i`` (``xi_i`` standard normal, fresh every step after the robots
+            move, from the plant's own stream ``[seed, 3]``, so the robots' own draws are
+            those of the run without it; reflected into the domain at the walls), while
+            the robots move from their true positions and the swarm metrics use the true
+            ones. 0 draws nothing.
+        seed: The run's seed, for the localisation error's stream.
 
     Without a mean-field form of the law (``needs_robots``, a law that moves each
     robot itself, such as a Markov chain or an assignment) there is no limit to
@@ -80,9 +82,17 @@ class Agents:
         mirror: bool = True,
         method: str = "auto",
         localisation_noise: float = 0.0,
+        seed: int = 0,
     ) -> None:
         self.grid, self.model, self.init, self.control = grid, model, init, control
         self.localisation_noise = number("localisation_noise", localisation_noise, 0.0)
+        quarter = min(grid.x1 - grid.x0, grid.y1 - grid.y0) / 4
+        require(
+            self.localisation_noise <= quarter,
+            "localisation_noise", localisation_noise, f"at most a quarter of the side, {quarter:g}",
+        )  # fmt: skip
+        self.seed = integer("seed", seed, 0)
+        self._sight = np.random.default_rng([self.seed, 3])
         self.has_limit = not needs_robots(control)
         self.density = init.on_grid(grid)
         self.n = integer("n", n, 1)
@@ -119,14 +129,16 @@ class Agents:
         """The positions as the estimator and the law see them ``(2, N)`` (length):
         the true ones plus the localisation error (the class docstring).
         """
-        return self._observed if self.localisation_noise > 0 else self.positions
+        if self.localisation_noise > 0 and self.swarm is not None:
+            return self._observed
+        return self.positions
 
-    def _observe(self, rng: np.random.Generator) -> None:
-        """Draw the localisation error of the current positions."""
+    def _observe(self) -> None:
+        """Draw the localisation error of the current positions (own stream)."""
         if self.localisation_noise > 0:
             assert self.swarm is not None
             g = self.grid
-            seen = self.swarm.positions + self.localisation_noise * rng.standard_normal(
+            seen = self.swarm.positions + self.localisation_noise * self._sight.standard_normal(
                 self.swarm.positions.shape
             )
             reflect(seen[0], g.x0, g.x1)
@@ -143,7 +155,8 @@ class Agents:
         self.t = 0.0
         if not self.has_limit:
             self.density = self.swarm.histogram()
-        self._observe(rng)
+        self._sight = np.random.default_rng([self.seed, 3])  # the stream restarts
+        self._observe()
 
     def advance(
         self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
@@ -168,7 +181,7 @@ class Agents:
         else:
             self.density = self.swarm.histogram()
         self.t += dt
-        self._observe(rng)
+        self._observe()
 
     def measure(self, rng: np.random.Generator) -> Measurement:
         """The KDE of the robots as observed (:attr:`observed`) and its analytic gradient."""

@@ -43,7 +43,7 @@ import numpy as np
 
 from harness.grid import Grid
 from harness.records import Command
-from harness.velocity import VelocityField
+from harness.velocity import VelocityField, cap_vectors
 
 PERIOD_ROUNDING = 1e-9
 """Slack of the period index ``floor(t / T + PERIOD_ROUNDING)`` (a fraction of ``T``)."""
@@ -124,9 +124,12 @@ def steer(
         v_max: Speed cap (length / s), or None.
 
     Returns:
-        ``Command(VelocityField.from_robots(grid, positions, u), u).capped(v_max)`` with
-        ``u = (goals - positions) / time_left`` (length / s), 0 for a holding robot.
+        ``Command(VelocityField.from_robots(grid, positions, u), u)`` with ``u`` the
+        capped ``(goals - positions) / time_left`` (length / s; 0 for a holding robot):
+        the field is the mean of the velocities the robots are given.
     """
     holding = np.isnan(goals[0])
     u = np.where(holding, 0.0, goals - positions) / time_left
-    return Command(VelocityField.from_robots(grid, positions, u), u).capped(v_max)
+    if v_max is not None:
+        u = cap_vectors(u, v_max)
+    return Command(VelocityField.from_robots(grid, positions, u), u)

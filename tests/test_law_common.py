@@ -76,10 +76,24 @@ def test_speed_cap_holds_in_the_log_of_every_step():
     assert max(peaks) > 0.5 * cap  # the heat law's start is faster than the cap: it binds
 
 
-def test_effort_of_a_constant_field_is_its_squared_speed():
-    """Langevin on a uniform target: ``v = 0``; the motion metrics are exactly 0."""
-    for _, m in api.simulate([*FAST, "control=langevin", "target=uniform"], t_final=0.1):
-        assert m["effort"] == 0.0 and m["mean_speed"] == 0.0 and m["peak_speed"] == 0.0
+def test_effort_of_a_constant_field_is_its_squared_speed(rng):
+    """A constant field ``c``: every robot is commanded ``c``, so ``effort = |c|^2`` and
+    both speeds ``|c|``; on the mean-field plant the same, whatever the density.
+    """
+    from harness.motion import motion
+    from harness.records import Estimate, StepRecord
+
+    grid = Grid.square(9)
+    c = np.array([0.3, -0.4])
+    field = VelocityField.from_centres(np.broadcast_to(c[:, None, None], (2, *grid.shape)))
+    p = rng.uniform(0.5, 1.5, grid.shape)
+    est = Estimate(p, np.zeros((2, *grid.shape)))
+    for x in (rng.uniform(0, 1, size=(2, 300)), None):
+        rec = StepRecord(0, 0.0, p, None, est, Command(field), x)
+        m = motion(grid, rec)
+        assert m["effort"] == pytest.approx(0.25, rel=1e-12)
+        assert m["mean_speed"] == pytest.approx(0.5, rel=1e-12)
+        assert m["peak_speed"] == pytest.approx(0.5, rel=1e-12)
 
 
 def test_localisation_noise_reaches_the_estimator_not_the_robots():
@@ -101,6 +115,37 @@ def test_localisation_noise_reaches_the_estimator_not_the_robots():
     assert ((seen >= 0) & (seen <= 1)).all()
     measured = plant.measure(np.random.default_rng(4))
     np.testing.assert_array_equal(measured.p, plant.kde(seen)[0])
+
+
+def test_the_law_sees_the_observed_positions_and_the_records_the_true_ones():
+    """Through the loop: the law gets the plant's observed positions, the step records
+    (and so the swarm metrics) the true ones.
+    """
+    from harness.build import build
+    from harness.loop import ClosedLoop
+
+    exp = build(api.compose([*FAST, "agents.localisation_noise=0.02"]))
+    seen = []
+
+    def spy(inp):
+        seen.append(inp.positions.copy())
+        return exp.control(inp)
+
+    loop = ClosedLoop(exp.plant, exp.estimator, spy, exp.model, exp.dt, np.random.default_rng(0))
+    loop.start()
+    rec = loop.step()
+    np.testing.assert_array_equal(seen[-1], exp.plant.observed)
+    assert rec.positions is exp.plant.positions
+    assert np.abs(seen[-1] - rec.positions).max() > 1e-3
+
+
+def test_localisation_noise_has_its_own_stream():
+    """A law that reads no position moves the robots exactly as without the noise."""
+    runs = [
+        [m["swarm_l2"] for _, m in api.simulate([*FAST, "control=langevin", *extra], 0.2)]
+        for extra in ([], ["agents.localisation_noise=0.05"])
+    ]
+    assert runs[0] == runs[1]
 
 
 def test_no_localisation_noise_leaves_the_run_unchanged():
