@@ -14,7 +14,8 @@ not part of it. A law that steers each robot to a waypoint (:mod:`harness.waypoi
 sends a robot back over the noise's displacement within the time left in its period, so
 its motion counts that correction: about ``1.25 (pi / 2) sqrt(2 sigma / T)`` in mean
 speed for a robot that holds (0.020 length / s at ``T`` = 1 s and ``sigma`` = 5e-5), and
-an effort that grows like ``log(T / dt)`` from the last steps of each period. Without robots (``plant=meanfield``) the means are over the mean-field
+an effort that grows like ``log(T / dt)`` from the last steps of each period. Without
+robots (``plant=meanfield``) the means are over the mean-field
 density ``p`` instead, ``int p |v|^2`` and ``int p |v|`` on the cell centres, and the
 peak is over the cells where ``p > 0``.
 
