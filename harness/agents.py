@@ -203,6 +203,14 @@ class Swarm:
         reflect(self.positions[1], g.y0, g.y1)
         return self.positions
 
+    def move(self, v: np.ndarray, dt: float, rng: np.random.Generator) -> np.ndarray:
+        """One step under the commanded velocities ``v`` ``(2, N)`` (length / s)
+        (:meth:`step_robots`); returns the applied velocities, ``v`` itself: an ideal
+        integrator applies what it is commanded.
+        """
+        self.step_robots(v, dt, rng)
+        return np.asarray(v, dtype=float)
+
     def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
         """Plain-numpy statement of :meth:`step` (same random draws, same result)."""
         g = self.grid

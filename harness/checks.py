@@ -83,7 +83,12 @@ observers read (allowed also when a config leaves an observer out); any other ke
 outside the component nodes must be read by a component through interpolation
 (:func:`check_unread`)."""
 
-DEFAULT_UNREAD = {"agents.localisation_noise": 0.0}
+DEFAULT_UNREAD = {
+    "agents.localisation_noise": 0.0,
+    "link.period": None,
+    "link.latency": 0.0,
+    "link.loss": 0.0,
+}
 """Keys of the shared blocks that a component may leave unread at these values (a
 feature left off, such as a plant of one's own without localisation error); set to
 anything else, nothing reading them is refused like any unread key."""

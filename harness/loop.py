@@ -133,4 +133,5 @@ class ClosedLoop:
             estimate=est,
             command=self.command,
             positions=self.plant.positions,
+            headings=getattr(self.plant, "headings", None),
         )

@@ -16,6 +16,9 @@ Topics (a topic that does not apply to the plant or estimator is absent):
 * ``/fields/grad_kde``, ``/fields/grad_hat``: fields ``gx``, ``gy`` (1 / length^3);
 * ``/fields/velocity``: fields ``vx``, ``vy`` (length / s), the cell-centre values;
 * ``/swarm/positions``: ``foxglove.PointCloud`` with float32 ``x, y, z`` (z = 0);
+* ``/swarm/poses`` (robots with a heading, ``plant=unicycles``):
+  ``foxglove.PosesInFrame``, each robot's position ``(x, y, 0)`` (length) and heading
+  ``theta`` (rad) as the rotation ``theta`` about z, at the positions' rate;
 * ``/metrics``: JSON (schema encoding ``jsonschema``), one message per step, the keys
   of :data:`METRIC_KEYS` in that order (``null`` where not applicable).
 
@@ -48,6 +51,7 @@ import numpy as np
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
@@ -87,6 +91,8 @@ METRIC_KEYS = (
     "effort",
     "mean_speed",
     "peak_speed",
+    "tracking_error",
+    "command_age",
     "consensus_l2",
     "central_gap_l2",
     "messages",
@@ -172,6 +178,46 @@ def points_message(t: float, positions: np.ndarray) -> PointCloud:
     return msg
 
 
+POSE_RECORD = np.dtype(
+    {
+        "names": ["tag", "size", "p_tag", "p_size", "x_tag", "x", "y_tag", "y", "z_tag",
+                  "z", "q_tag", "q_size", "qx_tag", "qx", "qy_tag", "qy", "qz_tag", "qz",
+                  "qw_tag", "qw"],
+        "formats": ["u1", "u1", "u1", "u1", "u1", "<f8", "u1", "<f8", "u1", "<f8",
+                    "u1", "u1", "u1", "<f8", "u1", "<f8", "u1", "<f8", "u1", "<f8"],
+        "offsets": [0, 1, 2, 3, 4, 5, 13, 14, 22, 23, 31, 32, 33, 34, 42, 43, 51, 52, 60, 61],
+        "itemsize": 69,
+    }
+)  # fmt: skip
+"""One entry of ``PosesInFrame.poses`` in protobuf's wire format: field 3 (length 67)
+holding a ``Pose`` whose ``position`` (field 1, length 27: ``x``, ``y``, ``z`` as fixed64
+fields 1 to 3) and ``orientation`` (field 2, length 36: ``x``, ``y``, ``z``, ``w`` as
+fixed64 fields 1 to 4) carry every value explicitly."""
+
+
+def poses_message(t: float, positions: np.ndarray, headings: np.ndarray) -> bytes:
+    """A serialised ``foxglove.PosesInFrame`` of the robots: position ``(x, y, 0)``
+    and the heading ``theta`` as the rotation about z, quaternion ``(0, 0, sin(theta /
+    2), cos(theta / 2))``.
+
+    The poses are written as packed records (:data:`POSE_RECORD`) after the serialised
+    header (time, frame): protobuf parses concatenated messages as one, appending the
+    repeated field, so the bytes parse to the message the protobuf API would build
+    (building ``N`` Python pose objects would cost seconds at a million robots).
+    """
+    head = PosesInFrame()
+    head.timestamp.seconds, head.timestamp.nanos = divmod(time_ns(t), 1_000_000_000)
+    head.frame_id = "world"
+    rec = np.zeros(positions.shape[1], dtype=POSE_RECORD)
+    rec["tag"], rec["size"] = 0x1A, 67
+    rec["p_tag"], rec["p_size"], rec["q_tag"], rec["q_size"] = 0x0A, 27, 0x12, 36
+    rec["x_tag"], rec["y_tag"], rec["z_tag"] = 0x09, 0x11, 0x19
+    rec["qx_tag"], rec["qy_tag"], rec["qz_tag"], rec["qw_tag"] = 0x09, 0x11, 0x19, 0x21
+    rec["x"], rec["y"] = positions[0], positions[1]
+    rec["qz"], rec["qw"] = np.sin(0.5 * headings), np.cos(0.5 * headings)
+    return head.SerializeToString() + rec.tobytes()
+
+
 def _json_number(x: Any) -> float | None:
     if x is None:
         return None
@@ -255,6 +301,7 @@ class McapLogger:
         as_writer = cast(McapWriter, self)
         self._grid_schema = register_schema(as_writer, GridMsg)
         self._points_schema = register_schema(as_writer, PointCloud)
+        self._poses_schema: int | None = None  # registered with the first poses
         self._metrics_schema = self.register_schema(
             name="densityloop.Metrics",
             encoding="jsonschema",
@@ -335,6 +382,11 @@ class McapLogger:
             self._write(
                 "/swarm/positions", rec.t, msg.SerializeToString(), self._points_schema, "protobuf"
             )
+            if rec.headings is not None:
+                if self._poses_schema is None:
+                    self._poses_schema = register_schema(cast(McapWriter, self), PosesInFrame)
+                data = poses_message(rec.t, rec.positions, rec.headings)
+                self._write("/swarm/poses", rec.t, data, self._poses_schema, "protobuf")
 
     def finalize(self, status: Status) -> None:
         """Close the log with the run's status (:meth:`close`)."""

@@ -19,6 +19,12 @@ robots (``plant=meanfield``) the means are over the mean-field
 density ``p`` instead, ``int p |v|^2`` and ``int p |v|`` on the cell centres, and the
 peak is over the cells where ``p > 0``.
 
+With robots the observer also reports what the plant says of the step just taken
+(:class:`harness.plants.Agents`): ``tracking_error``, the mean over robots of
+``|velocity applied - velocity commanded|`` (length / s; 0 for ideal integrators), and
+``command_age``, the mean age of the commands the robots hold (s, the link,
+:class:`harness.link.Link`); ``null`` before the first step and without robots.
+
 :mod:`analysis.sweep` integrates ``effort`` over time (length^2 / s) and averages
 ``mean_speed`` over the tail (motion at steady state).
 """
@@ -34,6 +40,8 @@ from harness.observers import RunContext, Status
 from harness.records import StepRecord
 
 MOTION_KEYS = ("effort", "mean_speed", "peak_speed")
+ROBOT_KEYS = ("tracking_error", "command_age")
+"""What the plant reports of the step just taken (module docstring)."""
 """The motion metrics, in log order."""
 
 
@@ -79,12 +87,15 @@ class Motion:
 
     Args:
         grid: The grid (run-time argument).
+        plant: The plant (run-time argument), whose ``tracking_error`` and
+            ``command_age`` are reported when it has them.
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
 
-    def __init__(self, grid: Grid) -> None:
+    def __init__(self, grid: Grid, plant: object = None) -> None:
         self.grid = grid
+        self.plant = plant
 
     def initialize(self, run: RunContext) -> None:
         """Nothing to prepare."""
@@ -92,6 +103,9 @@ class Motion:
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
         """The step's motion metrics."""
         values.update(motion(self.grid, rec))
+        for key in ROBOT_KEYS:
+            value = getattr(self.plant, key, None)
+            values[key] = None if value is None else float(value)
 
     def finalize(self, status: Status) -> None:
         """Nothing to close."""

@@ -22,6 +22,8 @@ fluctuations, so such a density drifts away from the swarm).
 
 from __future__ import annotations
 
+from typing import cast
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -30,6 +32,7 @@ from harness.components import (
     Control,
     Density,
     MemoryEstimate,
+    ParameterError,
     default_memory,
     flag,
     integer,
@@ -39,11 +42,48 @@ from harness.components import (
     require,
     require_field,
 )
+from harness.double_integrators import DoubleIntegratorSwarm
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE, noise_constants
+from harness.link import Link
 from harness.records import Command, ControlInput, Estimate, Measurement
 from harness.smoothing import Smoother
+from harness.unicycles import UnicycleSwarm
+
+
+def command_link(
+    period: float | None, latency: float, loss: float, dt: float | None, seed: int
+) -> Link:
+    """The plant's command link (:class:`harness.link.Link`; ``period`` None: every
+    step), its refusals named by the plant's keys (``link_period``, ...). Without ``dt``
+    only the ideal link is possible.
+    """
+    if dt is None:
+        ideal = period is None and latency == 0 and loss == 0
+        require(ideal, "dt", dt, "the step sim.dt, for a link that is not ideal")
+    step = 1.0 if dt is None else dt
+    try:
+        return Link(step if period is None else period, latency, loss, step, seed)
+    except ParameterError as err:
+        name = "dt" if err.name == "dt" else f"link_{err.name}"
+        raise ParameterError(name, err.value, err.allowed) from None
+
+
+def spread_values(
+    name: str, nominal: float, spread: float, n: int, rng: np.random.Generator
+) -> np.ndarray:
+    """Per-robot values ``nominal (1 + spread U)``, ``U`` uniform on ``[-1, 1]`` (drawn
+    from ``rng``); ``nominal > 0``, ``0 <= spread < 1``, so every value is positive.
+    """
+    value = number(name, nominal, 0.0, strict=True)
+    return np.asarray(value * (1.0 + spread * rng.uniform(-1.0, 1.0, n)))
+
+
+def _spread(spread: float) -> float:
+    s = number("spread", spread, 0.0)
+    require(s < 1, "spread", spread, "below 1 (a relative half-width; values stay positive)")
+    return s
 
 
 class Agents:
@@ -63,7 +103,20 @@ class Agents:
             those of the run without it; reflected into the domain at the walls), while
             the robots move from their true positions and the swarm metrics use the true
             ones. 0 draws nothing.
-        seed: The run's seed, for the localisation error's stream.
+        seed: The run's seed, for the localisation error's stream and the link's.
+        link_period, link_latency, link_loss: The command link (:class:`harness.link.Link`):
+            time between broadcasts (s; None: every step), delay to arrival (s) and
+            the probability that a robot misses a broadcast. The defaults are the
+            ideal link, under which the robots move by the code path of a run without
+            one.
+        dt: The step (s), which the link's period and latency count in.
+
+    Per step the plant reports ``tracking_error``, the mean over robots of
+    ``|velocity applied - velocity commanded|`` (length / s; the commanded velocity is
+    the held command at the robot, the applied one its displacement over the step
+    without the noise; 0 for these ideal integrators, which apply what they hold), and
+    ``command_age``, the mean age of the held commands (s, :class:`harness.link.Link`);
+    both None before the first step.
 
     Without a mean-field form of the law (``needs_robots``, a law that moves each
     robot itself, such as a Markov chain or an assignment) there is no limit to
@@ -83,6 +136,10 @@ class Agents:
         method: str = "auto",
         localisation_noise: float = 0.0,
         seed: int = 0,
+        link_period: float | None = None,
+        link_latency: float = 0.0,
+        link_loss: float = 0.0,
+        dt: float | None = None,
     ) -> None:
         self.grid, self.model, self.init, self.control = grid, model, init, control
         self.localisation_noise = number("localisation_noise", localisation_noise, 0.0)
@@ -105,6 +162,10 @@ class Agents:
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
         self.t = 0.0
+        self.link = command_link(link_period, link_latency, link_loss, dt, self.seed)
+        self.tracking_error: float | None = None
+        self.command_age: float | None = None
+        self._steps = 0
 
     has_robots = True
 
@@ -149,9 +210,19 @@ class Agents:
         """The limit ``p_inf`` moves by the law's field: refuse a law without one."""
         require_field(control, "on plant=agents (its N -> infinity limit moves by the field)")
 
+    headings: np.ndarray | None = None
+    """Robot headings ``(N,)`` (rad) for robots that have one, else None."""
+
+    def _robots(self, positions: np.ndarray) -> Swarm:
+        """The robots at ``positions`` ``(2, N)``: ideal integrators here."""
+        return Swarm(self.grid, positions, self.model.sigma)
+
     def start(self, rng: np.random.Generator) -> None:
         """Draw ``N`` robots from ``p_0``."""
-        self.swarm = Swarm(self.grid, self.init.sample(self.n, self.grid, rng), self.model.sigma)
+        self.swarm = self._robots(self.init.sample(self.n, self.grid, rng))
+        self.link.start(self.n)
+        self.tracking_error = self.command_age = None
+        self._steps = 0
         self.t = 0.0
         if not self.has_limit:
             self.density = self.swarm.histogram()
@@ -161,18 +232,29 @@ class Agents:
     def advance(
         self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
     ) -> None:
-        """Robots by Euler-Maruyama with reflection under the command (their own
-        velocities when it has them, else the field's interpolant); the limit ``p_inf``
-        under the law's field of its own noise-free KDE and of ``p_inf`` itself (held
-        over the step, like the command), or the robots' histogram without a limit;
-        then the localisation error of the new positions.
+        """The command through the link; the robots over the step under what each
+        holds (their own velocities when the command has them, else the field's
+        interpolant; ideal integrators by Euler-Maruyama with reflection); the limit
+        ``p_inf`` under the law's field of its own noise-free KDE and of ``p_inf``
+        itself (held over the step, like the command), or the robots' histogram
+        without a limit; then the localisation error of the new positions.
         """
         assert self.swarm is not None, "call start first"
-        if command.robots is not None:
-            self.swarm.step_robots(command.robots, dt, rng)
+        self.link.transmit(command, self._steps)
+        if self.link.ideal and type(self.swarm) is Swarm:  # a run without a link
+            if command.robots is not None:
+                self.swarm.step_robots(command.robots, dt, rng)
+            else:
+                assert command.field is not None
+                self.swarm.step(command.field, dt, rng)
+            self.tracking_error = 0.0
         else:
-            assert command.field is not None
-            self.swarm.step(command.field, dt, rng)
+            held = self.link.velocities(self.swarm.positions, self.grid)
+            applied = self.swarm.move(held, dt, rng)
+            # tracking error: (1/N) sum_k |applied_k - commanded_k|
+            self.tracking_error = float(np.mean(np.hypot(*(applied - held))))
+        self.command_age = self.link.age
+        self._steps += 1
         if self.has_limit:
             estimate = Estimate(*self.smoother(self.density))
             limit = self.control(ControlInput(self.t, estimate, density=self.density))
@@ -191,6 +273,139 @@ class Agents:
         return Measurement(*self.kde(seen))
 
 
+class Unicycles(Agents):
+    """``N`` unicycles (:mod:`harness.unicycles`) measured by their KDE, with the
+    limit ``p_inf`` of ideal integrators beside them (:class:`Agents`).
+
+    Args:
+        grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
+            seed, link_period, link_latency, link_loss, dt: As :class:`Agents`.
+        v_max: Nominal forward-speed limit (length / s), ``> 0``.
+        omega_max: Nominal turn-rate limit (rad / s), ``> 0``.
+        lookahead: Nominal look-ahead ``l`` of the feedback linearisation (length),
+            ``> 0``.
+        spread: Relative spread of the per-robot limits and look-ahead, ``0 <= s <
+            1``: robot ``k``'s value is the nominal times ``1 + s U_k``, ``U_k``
+            uniform on ``[-1, 1]``, drawn once per run.
+
+    Headings start uniform on ``[-pi, pi)``. The headings and the per-robot values come
+    from the plant's own stream ``[seed, 4]`` (in that order: headings, ``v_max``,
+    ``omega_max``, ``lookahead``), so the robots' positions and noise are those of the
+    ideal integrators' run of the same seed.
+    """
+
+    BYTES_PER_ROBOT = 400
+    """:attr:`Agents.BYTES_PER_ROBOT` plus the heading, three limits, the held and
+    applied velocities, and the logged pose (69 bytes, and its serialised copy)."""
+
+    def __init__(
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        init: Density,
+        control: Control,
+        n: int,
+        bandwidth: float,
+        mirror: bool = True,
+        method: str = "auto",
+        localisation_noise: float = 0.0,
+        seed: int = 0,
+        link_period: float | None = None,
+        link_latency: float = 0.0,
+        link_loss: float = 0.0,
+        dt: float | None = None,
+        v_max: float = 0.1,
+        omega_max: float = 3.0,
+        lookahead: float = 0.01,
+        spread: float = 0.0,
+    ) -> None:
+        super().__init__(
+            grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
+            seed, link_period, link_latency, link_loss, dt,
+        )  # fmt: skip
+        self.v_max = number("v_max", v_max, 0.0, strict=True)
+        self.omega_max = number("omega_max", omega_max, 0.0, strict=True)
+        self.lookahead = number("lookahead", lookahead, 0.0, strict=True)
+        self.spread = _spread(spread)
+
+    @property
+    def headings(self) -> np.ndarray | None:  # type: ignore[override]
+        """Robot headings ``(N,)`` (rad, in ``[-pi, pi)``), None before :meth:`start`."""
+        return None if self.swarm is None else cast(UnicycleSwarm, self.swarm).headings
+
+    def _robots(self, positions: np.ndarray) -> Swarm:
+        """Unicycles at ``positions``, headings and limits from the stream ``[seed, 4]``."""
+        rng = np.random.default_rng([self.seed, 4])
+        n, s = positions.shape[1], self.spread
+        headings = np.asarray(rng.uniform(-np.pi, np.pi, n))
+        return UnicycleSwarm(
+            self.grid, positions, self.model.sigma, headings,
+            spread_values("v_max", self.v_max, s, n, rng),
+            spread_values("omega_max", self.omega_max, s, n, rng),
+            spread_values("lookahead", self.lookahead, s, n, rng),
+        )  # fmt: skip
+
+
+class DoubleIntegrators(Agents):
+    """``N`` acceleration-limited robots (:mod:`harness.double_integrators`) measured
+    by their KDE, with the limit ``p_inf`` of ideal integrators beside them
+    (:class:`Agents`).
+
+    Args:
+        grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
+            seed, link_period, link_latency, link_loss, dt: As :class:`Agents`.
+        a_max: Nominal acceleration limit (length / s^2), ``> 0``.
+        gain: Nominal velocity-loop gain ``g`` (1 / s), ``> 0``.
+        spread: Relative spread of the per-robot limit and gain, as for
+            :class:`Unicycles` (drawn from the stream ``[seed, 4]``: ``a_max``, then
+            ``gain``).
+
+    The robots start at rest.
+    """
+
+    BYTES_PER_ROBOT = 300
+    """:attr:`Agents.BYTES_PER_ROBOT` plus the velocity, two limits, the held and
+    applied velocities."""
+
+    def __init__(
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        init: Density,
+        control: Control,
+        n: int,
+        bandwidth: float,
+        mirror: bool = True,
+        method: str = "auto",
+        localisation_noise: float = 0.0,
+        seed: int = 0,
+        link_period: float | None = None,
+        link_latency: float = 0.0,
+        link_loss: float = 0.0,
+        dt: float | None = None,
+        a_max: float = 0.5,
+        gain: float = 5.0,
+        spread: float = 0.0,
+    ) -> None:
+        super().__init__(
+            grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
+            seed, link_period, link_latency, link_loss, dt,
+        )  # fmt: skip
+        self.a_max = number("a_max", a_max, 0.0, strict=True)
+        self.gain = number("gain", gain, 0.0, strict=True)
+        self.spread = _spread(spread)
+
+    def _robots(self, positions: np.ndarray) -> Swarm:
+        """Double integrators at rest at ``positions``, limits from ``[seed, 4]``."""
+        rng = np.random.default_rng([self.seed, 4])
+        n, s = positions.shape[1], self.spread
+        return DoubleIntegratorSwarm(
+            self.grid, positions, self.model.sigma,
+            spread_values("a_max", self.a_max, s, n, rng),
+            spread_values("gain", self.gain, s, n, rng),
+        )  # fmt: skip
+
+
 class MeanField:
     """The mean-field density, measured with KDE-like noise (no robots).
 
@@ -201,10 +416,15 @@ class MeanField:
         bandwidth: KDE bandwidth ``h > 0`` (length) whose noise is imitated.
         localisation_noise: Must be 0: without robots there are no positions to
             mislocate.
+        link_period, link_latency, link_loss, dt: Must be the ideal link (the
+            defaults): without robots there is no one to send commands to.
     """
 
     positions = None
     observed = None
+    headings = None
+    tracking_error = None
+    command_age = None
     has_robots = False
     has_limit = True
     resolution = None  # white noise per cell: grid resolution
@@ -218,9 +438,18 @@ class MeanField:
         robots: int,
         bandwidth: float,
         localisation_noise: float = 0.0,
+        link_period: float | None = None,
+        link_latency: float = 0.0,
+        link_loss: float = 0.0,
+        dt: float | None = None,
     ) -> None:
         noise = number("localisation_noise", localisation_noise, 0.0)
         require(noise == 0, "localisation_noise", localisation_noise, "0 without robots")
+        link = command_link(link_period, link_latency, link_loss, dt, 0)
+        if not link.ideal:
+            bad = "link_loss" if link_loss else "link_latency" if link_latency else "link_period"
+            value = {"link_loss": link_loss, "link_latency": link_latency}.get(bad, link_period)
+            require(False, bad, value, "the ideal link on plant=meanfield (it has no robots)")
         self.grid, self.model = grid, model
         self.density = init.on_grid(grid)
         self.robots = integer("robots", robots, 1)

@@ -170,9 +170,10 @@ class Command:
 class StepRecord:
     """Everything the observers may see after a step (or at ``t = 0``).
 
-    ``positions`` is None without robots; ``measurement`` is None when the estimator
-    takes none (``exact``, ``injected``); ``command`` is the control law's output at
-    ``t``, held over the next step.
+    ``positions`` is None without robots; ``headings`` (rad, ``(N,)``) is None for
+    robots without a heading; ``measurement`` is None when the estimator takes none
+    (``exact``, ``injected``); ``command`` is the control law's output at ``t``, held
+    over the next step.
     """
 
     step: int
@@ -182,3 +183,4 @@ class StepRecord:
     estimate: Estimate
     command: Command
     positions: np.ndarray | None
+    headings: np.ndarray | None = None

@@ -1,0 +1,193 @@
+"""Compiled steps of the robots that are not ideal integrators: unicycles
+(:mod:`harness.unicycles`) and double integrators (:mod:`harness.double_integrators`),
+and the bilinear interpolation of a held field at the robots. O(N), one pass each; the
+numpy statements the tests compare against are
+:func:`harness.unicycles.unicycle_step_reference`,
+:func:`harness.double_integrators.double_integrator_step_reference` and
+:func:`harness.agents.interpolate`.
+
+Robots are independent and run in parallel (``prange``) from
+:data:`harness.compiled.agents.PARALLEL_MIN_ROBOTS` on; each robot's arithmetic is the
+same whatever the thread count, so the results are too.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from harness.compiled import SerialParallel
+from harness.compiled.agents import PARALLEL_MIN_ROBOTS
+
+
+def _interpolate_robots(
+    pos: np.ndarray,
+    vc: np.ndarray,
+    out: np.ndarray,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    nx: int,
+    ny: int,
+) -> None:
+    """``out[:, k]`` = the bilinear interpolant of the cell-centre velocity ``vc``
+    ``(2, ny, nx)`` at ``pos[:, k]`` (``(2, N)``), extended by the nearest centre values
+    beyond the outermost centres (as :func:`harness.agents.interpolate`).
+    """
+    dx = (x1 - x0) / nx
+    dy = (y1 - y0) / ny
+    n = pos.shape[1]
+    for k in numba.prange(n):
+        u = min(max((pos[0, k] - x0) / dx - 0.5, 0.0), nx - 1.0)
+        w = min(max((pos[1, k] - y0) / dy - 0.5, 0.0), ny - 1.0)
+        i0 = min(int(u), nx - 2)
+        j0 = min(int(w), ny - 2)
+        fx = u - i0
+        fy = w - j0
+        for c in range(2):
+            a = vc[c, j0, i0] + fx * (vc[c, j0, i0 + 1] - vc[c, j0, i0])
+            b = vc[c, j0 + 1, i0] + fx * (vc[c, j0 + 1, i0 + 1] - vc[c, j0 + 1, i0])
+            out[c, k] = a * (1.0 - fy) + b * fy
+
+
+interpolate_robots = SerialParallel(
+    _interpolate_robots, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS
+)
+"""Compiled :func:`_interpolate_robots`."""
+
+
+def _unicycle_step(
+    pos: np.ndarray,
+    theta: np.ndarray,
+    v: np.ndarray,
+    noise: np.ndarray,
+    v_max: np.ndarray,
+    omega_max: np.ndarray,
+    lookahead: np.ndarray,
+    applied: np.ndarray,
+    dt: float,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    scale: float,
+) -> None:
+    """In place, one hold of ``dt`` for every unicycle (the equations are in
+    :mod:`harness.unicycles`): forward speed ``u`` and turn rate ``omega`` from the
+    commanded velocity ``v[:, k]``, the exact arc under them, the scaled noise, the
+    walls; ``applied[:, k]`` gets the arc's displacement over ``dt``.
+    """
+    n = pos.shape[1]
+    for k in numba.prange(n):
+        vx = v[0, k]
+        vy = v[1, k]
+        c = math.cos(theta[k])
+        s = math.sin(theta[k])
+        along = c * vx + s * vy
+        across = c * vy - s * vx
+        speed = math.sqrt(vx * vx + vy * vy)
+        psi0 = math.atan2(across, along)
+        psi1 = 2.0 * math.atan(math.tan(0.5 * psi0) * math.exp(-speed * dt / lookahead[k]))
+        omega = min(max((psi0 - psi1) / dt, -omega_max[k]), omega_max[k])
+        u = min(max(along, -v_max[k]), v_max[k])
+        half = 0.5 * omega * dt
+        sinc = math.sin(half) / half if abs(half) > 1e-6 else 1.0 - half * half / 6.0
+        mid = theta[k] + half
+        ddx = u * dt * sinc * math.cos(mid)
+        ddy = u * dt * sinc * math.sin(mid)
+        applied[0, k] = ddx / dt
+        applied[1, k] = ddy / dt
+        px = pos[0, k] + ddx + noise[0, k] * scale
+        py = pos[1, k] + ddy + noise[1, k] * scale
+        if px < x0:
+            px = 2.0 * x0 - px
+        if px > x1:
+            px = 2.0 * x1 - px
+        if py < y0:
+            py = 2.0 * y0 - py
+        if py > y1:
+            py = 2.0 * y1 - py
+        pos[0, k] = min(max(px, x0), x1)
+        pos[1, k] = min(max(py, y0), y1)
+        heading = theta[k] + 2.0 * half
+        theta[k] = heading - 2.0 * math.pi * math.floor((heading + math.pi) / (2.0 * math.pi))
+
+
+unicycle_step = SerialParallel(_unicycle_step, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS)
+"""Compiled :func:`_unicycle_step`."""
+
+
+def _double_integrator_step(
+    pos: np.ndarray,
+    vel: np.ndarray,
+    v: np.ndarray,
+    noise: np.ndarray,
+    a_max: np.ndarray,
+    gain: np.ndarray,
+    applied: np.ndarray,
+    dt: float,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    scale: float,
+) -> None:
+    """In place, one hold of ``dt`` for every double integrator (the equations are in
+    :mod:`harness.double_integrators`): the exact solution of the saturated velocity
+    loop, the scaled noise, the walls; ``applied[:, k]`` gets the displacement over
+    ``dt``.
+    """
+    n = pos.shape[1]
+    for k in numba.prange(n):
+        g = gain[k]
+        a = a_max[k]
+        wx = vel[0, k]
+        wy = vel[1, k]
+        ex = v[0, k] - wx
+        ey = v[1, k] - wy
+        gap = math.sqrt(ex * ex + ey * ey)
+        dispx = 0.0
+        dispy = 0.0
+        rest = dt
+        if g * gap > a:
+            ts = (gap - a / g) / a  # time until the loop leaves the limit
+            tau = min(ts, dt)
+            ax = a * ex / gap
+            ay = a * ey / gap
+            dispx = wx * tau + 0.5 * ax * tau * tau
+            dispy = wy * tau + 0.5 * ay * tau * tau
+            wx = wx + ax * tau
+            wy = wy + ay * tau
+            rest = dt - tau
+        if rest > 0.0:
+            decay = math.exp(-g * rest)
+            lag = -math.expm1(-g * rest) / g
+            dispx += v[0, k] * rest + (wx - v[0, k]) * lag
+            dispy += v[1, k] * rest + (wy - v[1, k]) * lag
+            wx = v[0, k] + (wx - v[0, k]) * decay
+            wy = v[1, k] + (wy - v[1, k]) * decay
+        vel[0, k] = wx
+        vel[1, k] = wy
+        applied[0, k] = dispx / dt
+        applied[1, k] = dispy / dt
+        px = pos[0, k] + dispx + noise[0, k] * scale
+        py = pos[1, k] + dispy + noise[1, k] * scale
+        if px < x0:
+            px = 2.0 * x0 - px
+        if px > x1:
+            px = 2.0 * x1 - px
+        if py < y0:
+            py = 2.0 * y0 - py
+        if py > y1:
+            py = 2.0 * y1 - py
+        pos[0, k] = min(max(px, x0), x1)
+        pos[1, k] = min(max(py, y0), y1)
+
+
+double_integrator_step = SerialParallel(
+    _double_integrator_step, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS
+)
+"""Compiled :func:`_double_integrator_step`."""

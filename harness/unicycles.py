@@ -1,0 +1,135 @@
+"""Unicycles: robots with a heading that track a commanded velocity
+(``plant=unicycles``, :class:`harness.plants.Unicycles`).
+
+Robot ``k`` has an axle position ``X_k`` (length, the point the KDE measures and the
+metrics count) and a heading ``theta_k`` (rad). Its kinematics, with forward speed
+``u`` and turn rate ``omega``,
+
+    dX = u e(theta) dt + sqrt(2 sigma) dB,    d theta = omega dt,
+    e(theta) = (cos theta, sin theta),        |u| <= v_max,  |omega| <= omega_max,
+
+keep the positions' diffusion ``sigma`` (eq. ``Langevin equation``), so the estimators
+apply unchanged.
+
+Controller: feedback linearisation about the point ``P = X + l e(theta)`` a look-ahead
+``l > 0`` ahead of the axle. With ``e_perp = (-sin theta, cos theta)``, the law
+
+    u = e . v,    omega = (e_perp . v) / l
+
+gives ``dP/dt = v`` exactly (without the limits): the point ahead is a single
+integrator, and the axle lags it by ``l``. Write ``psi`` for the angle from the heading
+to ``v``; under a held ``v`` the law turns the heading by ``d psi / dt = -(|v| / l)
+sin psi``, whose solution over a hold of ``dt`` is
+
+    tan(psi_1 / 2) = tan(psi_0 / 2) exp(-|v| dt / l).
+
+The robot's own controller runs much faster than the command is refreshed, so the
+heading is taken there exactly: over each hold the turn rate is the constant
+``omega = (psi_0 - psi_1) / dt`` (it reaches the heading the continuous law reaches),
+clipped to ``[-omega_max, omega_max]``, and the forward speed is ``u = e(theta_0) . v``
+clipped to ``[-v_max, v_max]``. The unicycle then moves along the exact arc of
+constant ``(u, omega)``,
+
+    X_1 = X_0 + u dt sinc(omega dt / 2) e(theta_0 + omega dt / 2),
+    theta_1 = theta_0 + omega dt,
+
+plus the noise ``sqrt(2 sigma dt) xi`` (the run's stream, drawn as for the single
+integrators, so a run of the same seed has the same increments), then the walls
+reflect the axle position (:func:`harness.agents.reflect`; the heading is kept). A
+small ``l`` aligns the heading within a step and the axle then follows ``v`` as a
+single integrator would; a large one turns slowly and the robot moves along its
+heading's projection of ``v`` meanwhile.
+
+What the mean-field model no longer captures: the density of axle positions is not
+transported by ``v`` but by ``u e(theta)``, a velocity that depends on each robot's
+heading, a hidden state the Fokker-Planck equation (eq. ``FP equation``) and the
+filters' transport model do not carry; the limits cut the velocity where the law asks
+for more; and robots pointing away from ``v`` move more slowly for a time of order
+``l / |v|`` after each change of direction.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from harness.agents import Swarm, draw_normals, reflect
+from harness.compiled.robots import unicycle_step
+from harness.grid import Grid
+
+
+class UnicycleSwarm(Swarm):
+    """``N`` unicycles in the grid's rectangle (module docstring).
+
+    Args:
+        grid: The grid (domain).
+        positions: Initial axle positions ``(2, N)`` (length), inside the domain.
+        sigma: Noise intensity ``sigma >= 0`` (length^2 / s).
+        headings: Initial headings ``(N,)`` (rad).
+        v_max: Forward-speed limit per robot ``(N,)`` (length / s), ``> 0``.
+        omega_max: Turn-rate limit per robot ``(N,)`` (rad / s), ``> 0``.
+        lookahead: Look-ahead distance ``l`` per robot ``(N,)`` (length), ``> 0``.
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        positions: np.ndarray,
+        sigma: float,
+        headings: np.ndarray,
+        v_max: np.ndarray,
+        omega_max: np.ndarray,
+        lookahead: np.ndarray,
+    ) -> None:
+        super().__init__(grid, positions, sigma)
+        n = self.n
+        self.headings = np.array(headings, dtype=float).reshape(n)
+        self.v_max = np.array(v_max, dtype=float).reshape(n)
+        self.omega_max = np.array(omega_max, dtype=float).reshape(n)
+        self.lookahead = np.array(lookahead, dtype=float).reshape(n)
+        self.applied = np.zeros_like(self.positions)
+
+    def move(self, v: np.ndarray, dt: float, rng: np.random.Generator) -> np.ndarray:
+        """One hold of ``dt`` (s) under the commanded velocities ``v`` ``(2, N)``
+        (length / s); returns the applied velocities ``(2, N)`` (the arc's
+        displacement over ``dt``, noise excluded). Compiled
+        (:func:`harness.compiled.robots.unicycle_step`); :func:`unicycle_step_reference`
+        is its numpy statement.
+        """
+        g = self.grid
+        draw_normals(rng, self._noise)
+        unicycle_step(
+            self.positions, self.headings, np.ascontiguousarray(v, dtype=float), self._noise,
+            self.v_max, self.omega_max, self.lookahead, self.applied, float(dt),
+            g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
+        )  # fmt: skip
+        return self.applied
+
+
+def unicycle_step_reference(
+    swarm: UnicycleSwarm, v: np.ndarray, dt: float, rng: np.random.Generator
+) -> np.ndarray:
+    """Numpy statement of :meth:`UnicycleSwarm.move` (same draws, same result)."""
+    g = swarm.grid
+    draw_normals(rng, swarm._noise)
+    theta = swarm.headings
+    e = np.array([np.cos(theta), np.sin(theta)])
+    along = e[0] * v[0] + e[1] * v[1]
+    across = e[0] * v[1] - e[1] * v[0]
+    # the heading error psi under the held v: tan(psi_1 / 2) = tan(psi_0 / 2) exp(-|v| dt / l)
+    psi0 = np.arctan2(across, along)
+    decay = np.exp(-np.hypot(v[0], v[1]) * dt / swarm.lookahead)
+    psi1 = 2.0 * np.arctan(np.tan(0.5 * psi0) * decay)
+    omega = np.clip((psi0 - psi1) / dt, -swarm.omega_max, swarm.omega_max)
+    u = np.clip(along, -swarm.v_max, swarm.v_max)
+    half = 0.5 * omega * dt
+    small = np.abs(half) <= 1e-6
+    sinc = np.where(small, 1.0 - half * half / 6.0, np.sin(half) / np.where(small, 1.0, half))
+    # the arc of constant (u, omega): X_1 = X_0 + u dt sinc(omega dt / 2) e(theta_0 + omega dt / 2)
+    disp = u * dt * sinc * np.array([np.cos(theta + half), np.sin(theta + half)])
+    swarm.applied[:] = disp / dt
+    swarm.positions += disp + swarm._noise * np.sqrt(2.0 * swarm.sigma * dt)
+    reflect(swarm.positions[0], g.x0, g.x1)
+    reflect(swarm.positions[1], g.y0, g.y1)
+    heading = theta + 2.0 * half
+    swarm.headings[:] = heading - 2.0 * np.pi * np.floor((heading + np.pi) / (2.0 * np.pi))
+    return swarm.applied
