@@ -1,8 +1,9 @@
 """Read a densityloop ``run.mcap`` into numpy arrays (no import of the run loop).
 
 ``load_run(path)`` returns a :class:`RunLog`: the metrics as one array per key,
-each field topic as a :class:`FieldSeries` (times and values), the robot positions,
-and the metadata records (``config``, ``provenance``, ``status``). Topic names and
+each field topic as a :class:`FieldSeries` (times and values), the robot positions
+(and, for robots with a heading, their poses ``(N, 3)``: x, y in length, heading in
+rad), and the metadata records (``config``, ``provenance``, ``status``). Topic names and
 units are those of the log contract in ``harness/mcap_log.py``.
 
 The same run as xarray objects (built from the numpy arrays, so the values are the
@@ -29,6 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import InvalidMagic, StreamReader
 
@@ -118,6 +120,8 @@ class RunLog:
     positions_t: np.ndarray
     positions: list[np.ndarray] = field(repr=False)
     recovery: str | None = None
+    poses_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    poses: list[np.ndarray] = field(default_factory=list, repr=False)
 
     @property
     def state(self) -> str:
@@ -295,6 +299,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     grids: dict[str, dict] = {}
     pos_t: list[float] = []
     positions: list[np.ndarray] = []
+    poses: list[tuple[float, np.ndarray]] = []
     metadata: dict[str, dict[str, str]] = {}
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
@@ -321,7 +326,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
                     schema = schemas.get(channel.schema_id)
                     try:
                         n_messages += _take(
-                            record, channel, schema, metric_rows, grids, pos_t, positions
+                            record, channel, schema, metric_rows, grids, pos_t, positions, poses
                         )
                     except Exception:  # a damaged message: skip it, count it
                         n_bad += 1
@@ -354,6 +359,8 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
         positions_t=np.array(pos_t),
         positions=positions,
         recovery=recovery,
+        poses_t=np.array([t for t, _ in poses]),
+        poses=[p for _, p in poses],
     )
 
 
@@ -367,7 +374,7 @@ def _metric_arrays(rows: list[dict[str, float]]) -> dict[str, np.ndarray]:
     return {k: np.array([row.get(k, np.nan) for row in rows], dtype=float) for k in keys}
 
 
-def _take(record, channel, schema, metric_rows, grids, pos_t, positions) -> bool:
+def _take(record, channel, schema, metric_rows, grids, pos_t, positions, poses) -> bool:
     """Decode one message of a known topic into the accumulators; False when the
     topic or schema is not one of the log contract's.
     """
@@ -395,6 +402,12 @@ def _take(record, channel, schema, metric_rows, grids, pos_t, positions) -> bool
         pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 3)
         pos_t.append(t)
         positions.append(pts[:, :2].astype(float))
+    elif channel.topic == "/swarm/poses" and name == "foxglove.PosesInFrame":
+        msg = PosesInFrame.FromString(record.data)
+        xy = np.array([(p.position.x, p.position.y) for p in msg.poses]).reshape(-1, 2)
+        qz = np.array([p.orientation.z for p in msg.poses])
+        qw = np.array([p.orientation.w for p in msg.poses])
+        poses.append((t, np.column_stack([xy, 2.0 * np.arctan2(qz, qw)])))
     else:
         return False
     return True

@@ -23,22 +23,30 @@ sin psi``, whose solution over a hold of ``dt`` is
 
     tan(psi_1 / 2) = tan(psi_0 / 2) exp(-|v| dt / l).
 
-The robot's own controller runs much faster than the command is refreshed, so the
-heading is taken there exactly: over each hold the turn rate is the constant
-``omega = (psi_0 - psi_1) / dt`` (it reaches the heading the continuous law reaches),
-clipped to ``[-omega_max, omega_max]``, and the forward speed is ``u = e(theta_0) . v``
-clipped to ``[-v_max, v_max]``. The unicycle then moves along the exact arc of
-constant ``(u, omega)``,
+The robot's own controller runs much faster than the command is refreshed, so each
+hold is solved exactly where the law stays within the limits. Along the solution
+``|psi|`` falls monotonically from ``|psi_0|`` to ``|psi_1|``, so the largest forward
+speed ``|v| |cos psi|`` and turn rate ``|v| |sin psi| / l`` over the hold are taken at
+an end, or (``|sin psi| = 1``) where ``|psi|`` passes ``pi / 2``; when both are within
+``v_max`` and ``omega_max`` the hold is exact:
+
+    theta_1 = theta_0 + psi_0 - psi_1,
+    X_1 = X_0 + v dt + l (e(theta_0) - e(theta_1))
+
+(the point ahead moves by ``v dt``; the axle's deviation from ``v dt`` telescopes over
+the holds, so a unicycle that stays within its limits is never further than ``2 l``
+from where the point ahead puts it). Otherwise the hold is one arc of constant
+speeds: the turn rate ``omega = (psi_0 - psi_1) / dt`` (the one that reaches the law's
+heading) clipped to ``[-omega_max, omega_max]`` and the forward speed ``u =
+e(theta_0) . v`` clipped to ``[-v_max, v_max]``,
 
     X_1 = X_0 + u dt sinc(omega dt / 2) e(theta_0 + omega dt / 2),
     theta_1 = theta_0 + omega dt,
 
-plus the noise ``sqrt(2 sigma dt) xi`` (the run's stream, drawn as for the single
+an approximation of the saturated law's hold that keeps the limits. Either way the
+noise ``sqrt(2 sigma dt) xi`` follows (the run's stream, drawn as for the single
 integrators, so a run of the same seed has the same increments), then the walls
-reflect the axle position (:func:`harness.agents.reflect`; the heading is kept). A
-small ``l`` aligns the heading within a step and the axle then follows ``v`` as a
-single integrator would; a large one turns slowly and the robot moves along its
-heading's projection of ``v`` meanwhile.
+reflect the axle position (:func:`harness.agents.reflect`; the heading is kept).
 
 What the mean-field model no longer captures: the density of axle positions is not
 transported by ``v`` but by ``u e(theta)``, a velocity that depends on each robot's
@@ -119,17 +127,30 @@ def unicycle_step_reference(
     psi0 = np.arctan2(across, along)
     decay = np.exp(-np.hypot(v[0], v[1]) * dt / swarm.lookahead)
     psi1 = 2.0 * np.arctan(np.tan(0.5 * psi0) * decay)
+    a0, a1 = np.abs(psi0), np.abs(psi1)
+    top_cos = np.maximum(np.abs(np.cos(psi0)), np.abs(np.cos(psi1)))
+    passes = (a1 <= 0.5 * np.pi) & (0.5 * np.pi <= a0)
+    top_sin = np.where(passes, 1.0, np.maximum(np.abs(np.sin(psi0)), np.abs(np.sin(psi1))))
+    speed = np.hypot(v[0], v[1])
+    exact = (speed * top_cos <= swarm.v_max) & (
+        speed * top_sin <= swarm.omega_max * swarm.lookahead
+    )
+    # exact hold: theta_1 = theta_0 + psi_0 - psi_1, X_1 = X_0 + v dt + l (e(theta_0) - e(theta_1))
+    end = theta + psi0 - psi1
+    held = v * dt + swarm.lookahead * (e - np.array([np.cos(end), np.sin(end)]))
+    # at a limit: one arc of the clipped (u, omega)
     omega = np.clip((psi0 - psi1) / dt, -swarm.omega_max, swarm.omega_max)
     u = np.clip(along, -swarm.v_max, swarm.v_max)
     half = 0.5 * omega * dt
     small = np.abs(half) <= 1e-6
     sinc = np.where(small, 1.0 - half * half / 6.0, np.sin(half) / np.where(small, 1.0, half))
-    # the arc of constant (u, omega): X_1 = X_0 + u dt sinc(omega dt / 2) e(theta_0 + omega dt / 2)
-    disp = u * dt * sinc * np.array([np.cos(theta + half), np.sin(theta + half)])
+    # X_1 = X_0 + u dt sinc(omega dt / 2) e(theta_0 + omega dt / 2)
+    arc = u * dt * sinc * np.array([np.cos(theta + half), np.sin(theta + half)])
+    disp = np.where(exact, held, arc)
+    heading = np.where(exact, end, theta + omega * dt)
     swarm.applied[:] = disp / dt
     swarm.positions += disp + swarm._noise * np.sqrt(2.0 * swarm.sigma * dt)
     reflect(swarm.positions[0], g.x0, g.x1)
     reflect(swarm.positions[1], g.y0, g.y1)
-    heading = theta + 2.0 * half
     swarm.headings[:] = heading - 2.0 * np.pi * np.floor((heading + np.pi) / (2.0 * np.pi))
     return swarm.applied

@@ -76,9 +76,10 @@ def _unicycle_step(
     scale: float,
 ) -> None:
     """In place, one hold of ``dt`` for every unicycle (the equations are in
-    :mod:`harness.unicycles`): forward speed ``u`` and turn rate ``omega`` from the
-    commanded velocity ``v[:, k]``, the exact arc under them, the scaled noise, the
-    walls; ``applied[:, k]`` gets the arc's displacement over ``dt``.
+    :mod:`harness.unicycles`): the exact hold of the feedback-linearising law under the
+    commanded velocity ``v[:, k]`` when it stays within the limits, else one arc of the
+    clipped speeds; the scaled noise; the walls. ``applied[:, k]`` gets the
+    displacement over ``dt``.
     """
     n = pos.shape[1]
     for k in numba.prange(n):
@@ -91,13 +92,27 @@ def _unicycle_step(
         speed = math.sqrt(vx * vx + vy * vy)
         psi0 = math.atan2(across, along)
         psi1 = 2.0 * math.atan(math.tan(0.5 * psi0) * math.exp(-speed * dt / lookahead[k]))
-        omega = min(max((psi0 - psi1) / dt, -omega_max[k]), omega_max[k])
-        u = min(max(along, -v_max[k]), v_max[k])
-        half = 0.5 * omega * dt
-        sinc = math.sin(half) / half if abs(half) > 1e-6 else 1.0 - half * half / 6.0
-        mid = theta[k] + half
-        ddx = u * dt * sinc * math.cos(mid)
-        ddy = u * dt * sinc * math.sin(mid)
+        a0 = abs(psi0)
+        a1 = abs(psi1)
+        top_cos = max(abs(math.cos(psi0)), abs(math.cos(psi1)))
+        top_sin = (
+            1.0 if a1 <= 0.5 * math.pi <= a0 else max(abs(math.sin(psi0)), abs(math.sin(psi1)))
+        )
+        if speed * top_cos <= v_max[k] and speed * top_sin <= omega_max[k] * lookahead[k]:
+            # within the limits: the exact hold, the point ahead moves by v dt
+            turn = psi0 - psi1
+            ddx = vx * dt + lookahead[k] * (c - math.cos(theta[k] + turn))
+            ddy = vy * dt + lookahead[k] * (s - math.sin(theta[k] + turn))
+        else:
+            # at a limit: one arc of the clipped (u, omega)
+            omega = min(max((psi0 - psi1) / dt, -omega_max[k]), omega_max[k])
+            u = min(max(along, -v_max[k]), v_max[k])
+            half = 0.5 * omega * dt
+            sinc = math.sin(half) / half if abs(half) > 1e-6 else 1.0 - half * half / 6.0
+            mid = theta[k] + half
+            ddx = u * dt * sinc * math.cos(mid)
+            ddy = u * dt * sinc * math.sin(mid)
+            turn = omega * dt
         applied[0, k] = ddx / dt
         applied[1, k] = ddy / dt
         px = pos[0, k] + ddx + noise[0, k] * scale
@@ -112,7 +127,7 @@ def _unicycle_step(
             py = 2.0 * y1 - py
         pos[0, k] = min(max(px, x0), x1)
         pos[1, k] = min(max(py, y0), y1)
-        heading = theta[k] + 2.0 * half
+        heading = theta[k] + turn
         theta[k] = heading - 2.0 * math.pi * math.floor((heading + math.pi) / (2.0 * math.pi))
 
 
