@@ -46,6 +46,7 @@ bench: $(STAMP) ## Speed benchmarks, each figure next to its target (about 4 min
 	$(PY) -m benchmarks.numerics
 	$(PY) -m benchmarks.distributed --app
 	$(PY) -m benchmarks.laws
+	$(PY) -m benchmarks.robots
 
 RUN_DIR := outputs/reproduce
 

@@ -39,6 +39,8 @@ each run the tail statistics use; ``--tail`` overrides it. The figures
   step;
 * ``laws_n``, ``laws_iss``, ``heat_floor``, ``laws_noise``: the law studies
   (:mod:`analysis.laws`);
+* ``robots`` (``plant._target_``, ``law``) and ``link`` (``link.period``,
+  ``link.latency``, ``link.loss``): the robot and link studies (:mod:`analysis.robots`);
 * ``convergence`` (``convergence.png/.pdf``): ``||Phi||`` curves overlaid, labelled by
   the first varied key, and the fitted exponential rates next to the theoretical
   ``(alpha + sigma) lambda``. The generic figure: a sweep without a declaration (one
@@ -68,7 +70,9 @@ Decentralised statistics (empty for other runs): ``central_gap_tail_mean``,
 of ``central_gap_l2``, ``consensus_l2``, ``messages``, ``mean_degree``, ``components``,
 ``algebraic_connectivity``).
 Motion statistics (:func:`motion_stats`): ``effort_integral`` (length^2 / s),
-``speed_tail_mean`` (length / s) and ``settling_time`` (s; ``inf``: never settled).
+``speed_tail_mean`` (length / s), ``settling_time`` (s; ``inf``: never settled),
+``tracking_tail_mean`` (length / s) and ``age_tail_mean`` (s), the tail means of the
+robots' ``tracking_error`` and ``command_age``.
 
 Seeds. Rows that differ only in ``seed`` are one point: ``sweep_aggregated.csv`` has one
 row per point with, for every statistic ``s``, ``s_mean``, ``s_ci_low``, ``s_ci_high``
@@ -135,6 +139,8 @@ STATS = (
     "effort_integral",
     "speed_tail_mean",
     "settling_time",
+    "tracking_tail_mean",
+    "age_tail_mean",
 )
 
 
@@ -234,11 +240,14 @@ def motion_stats(run, last: np.ndarray, floor_mean: float) -> dict[str, float]:
     (length^2 / s, trapezoids over the logged steps), ``speed_tail_mean`` (the tail mean
     of ``mean_speed``, length / s: motion at steady state), and ``settling_time`` (s): the
     first time ``swarm_l2 <= SETTLING_FACTOR floor_mean``, ``inf`` when it never is (NaN
-    without robots or without a floor).
+    without robots or without a floor); ``tracking_tail_mean`` (length / s) and
+    ``age_tail_mean`` (s), the tail means of ``tracking_error`` and ``command_age``.
     """
     m = run.metrics
     t = m["t"]
     out = {"effort_integral": math.nan, "speed_tail_mean": math.nan, "settling_time": math.nan}
+    for name, key in (("tracking_tail_mean", "tracking_error"), ("age_tail_mean", "command_age")):
+        out[name] = _stat(np.mean, m[key][last]) if key in m else math.nan
     effort = m.get("effort")
     if effort is not None and np.isfinite(effort).all():
         out["effort_integral"] = float(np.sum(0.5 * (effort[1:] + effort[:-1]) * np.diff(t)))
@@ -712,15 +721,15 @@ class Figure:
     needs: tuple[str, ...] = ()
 
 
-def _law_figure(name: str) -> Callable[[Study], list[Path]]:
-    """The figure ``name`` of :mod:`analysis.laws`, imported when it is drawn (that
-    module draws with this one's helpers).
+def _law_figure(name: str, module: str = "laws") -> Callable[[Study], list[Path]]:
+    """The figure ``name`` of :mod:`analysis.laws` (or of ``analysis.<module>``),
+    imported when it is drawn (those modules draw with this one's helpers).
     """
 
     def draw(study: Study) -> list[Path]:
-        from analysis import laws
+        import importlib
 
-        result: list[Path] = getattr(laws, name)(study)
+        result: list[Path] = getattr(importlib.import_module(f"analysis.{module}"), name)(study)
         return result
 
     return draw
@@ -735,6 +744,10 @@ FIGURES: dict[str, Figure] = {
         ("control.density_floor", "estimator.shape", "estimator.delta"),
     ),
     "laws_noise": Figure(_law_figure("draw_laws_noise"), ("law", "agents.localisation_noise")),
+    "robots": Figure(_law_figure("draw_robots", "robots"), ("plant._target_", "law")),
+    "link": Figure(
+        _law_figure("draw_link", "robots"), ("link.period", "link.latency", "link.loss")
+    ),
     "debias_n": Figure(_debias, ("agents.n", "kde.debias")),
     "agents_n": Figure(_agents, ("agents.n",)),
     "distributed_r": Figure(_network, ("estimator.radius",)),

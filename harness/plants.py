@@ -211,7 +211,8 @@ class Agents:
         require_field(control, "on plant=agents (its N -> infinity limit moves by the field)")
 
     headings: np.ndarray | None = None
-    """Robot headings ``(N,)`` (rad) for robots that have one, else None."""
+    """Robot headings as unit vectors ``(cos theta, sin theta)``, ``(2, N)``, for robots
+    that have one, else None."""
 
     def _robots(self, positions: np.ndarray) -> Swarm:
         """The robots at ``positions`` ``(2, N)``: ideal integrators here."""
@@ -330,7 +331,9 @@ class Unicycles(Agents):
 
     @property
     def headings(self) -> np.ndarray | None:  # type: ignore[override]
-        """Robot headings ``(N,)`` (rad, in ``[-pi, pi)``), None before :meth:`start`."""
+        """Robot headings as unit vectors ``(cos theta, sin theta)``, ``(2, N)``; None
+        before :meth:`start`.
+        """
         return None if self.swarm is None else cast(UnicycleSwarm, self.swarm).headings
 
     def _robots(self, positions: np.ndarray) -> Swarm:

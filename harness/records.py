@@ -170,10 +170,10 @@ class Command:
 class StepRecord:
     """Everything the observers may see after a step (or at ``t = 0``).
 
-    ``positions`` is None without robots; ``headings`` (rad, ``(N,)``) is None for
-    robots without a heading; ``measurement`` is None when the estimator takes none
-    (``exact``, ``injected``); ``command`` is the control law's output at ``t``, held
-    over the next step.
+    ``positions`` is None without robots; ``headings`` (unit vectors ``(cos theta,
+    sin theta)``, ``(2, N)``) is None for robots without a heading; ``measurement`` is
+    None when the estimator takes none (``exact``, ``injected``); ``command`` is the
+    control law's output at ``t``, held over the next step.
     """
 
     step: int

@@ -72,7 +72,8 @@ class UnicycleSwarm(Swarm):
         grid: The grid (domain).
         positions: Initial axle positions ``(2, N)`` (length), inside the domain.
         sigma: Noise intensity ``sigma >= 0`` (length^2 / s).
-        headings: Initial headings ``(N,)`` (rad).
+        headings: Initial headings ``(N,)`` (rad); kept as the unit vectors
+            ``e(theta)``, :attr:`headings` ``(2, N)``.
         v_max: Forward-speed limit per robot ``(N,)`` (length / s), ``> 0``.
         omega_max: Turn-rate limit per robot ``(N,)`` (rad / s), ``> 0``.
         lookahead: Look-ahead distance ``l`` per robot ``(N,)`` (length), ``> 0``.
@@ -90,7 +91,9 @@ class UnicycleSwarm(Swarm):
     ) -> None:
         super().__init__(grid, positions, sigma)
         n = self.n
-        self.headings = np.array(headings, dtype=float).reshape(n)
+        theta = np.array(headings, dtype=float).reshape(n)
+        self.headings = np.array([np.cos(theta), np.sin(theta)])
+        """The headings as unit vectors ``e(theta) = (cos theta, sin theta)``, ``(2, N)``."""
         self.v_max = np.array(v_max, dtype=float).reshape(n)
         self.omega_max = np.array(omega_max, dtype=float).reshape(n)
         self.lookahead = np.array(lookahead, dtype=float).reshape(n)
@@ -119,7 +122,7 @@ def unicycle_step_reference(
     """Numpy statement of :meth:`UnicycleSwarm.move` (same draws, same result)."""
     g = swarm.grid
     draw_normals(rng, swarm._noise)
-    theta = swarm.headings
+    theta = np.arctan2(swarm.headings[1], swarm.headings[0])
     e = np.array([np.cos(theta), np.sin(theta)])
     along = e[0] * v[0] + e[1] * v[1]
     across = e[0] * v[1] - e[1] * v[0]
@@ -152,5 +155,5 @@ def unicycle_step_reference(
     swarm.positions += disp + swarm._noise * np.sqrt(2.0 * swarm.sigma * dt)
     reflect(swarm.positions[0], g.x0, g.x1)
     reflect(swarm.positions[1], g.y0, g.y1)
-    swarm.headings[:] = heading - 2.0 * np.pi * np.floor((heading + np.pi) / (2.0 * np.pi))
+    swarm.headings[:] = [np.cos(heading), np.sin(heading)]
     return swarm.applied

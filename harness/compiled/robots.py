@@ -61,7 +61,7 @@ interpolate_robots = SerialParallel(
 
 def _unicycle_step(
     pos: np.ndarray,
-    theta: np.ndarray,
+    heading: np.ndarray,
     v: np.ndarray,
     noise: np.ndarray,
     v_max: np.ndarray,
@@ -78,41 +78,76 @@ def _unicycle_step(
     """In place, one hold of ``dt`` for every unicycle (the equations are in
     :mod:`harness.unicycles`): the exact hold of the feedback-linearising law under the
     commanded velocity ``v[:, k]`` when it stays within the limits, else one arc of the
-    clipped speeds; the scaled noise; the walls. ``applied[:, k]`` gets the
-    displacement over ``dt``.
+    clipped speeds; the scaled noise; the walls. ``heading`` holds the unit vectors
+    ``e(theta)`` ``(2, N)``; ``applied[:, k]`` gets the displacement over ``dt``.
+
+    The exact hold needs no angle: with ``tau = tan(psi / 2)``, ``tau_0 = (e_perp . v) /
+    (|v| + e . v)``, ``tau_1 = tau_0 exp(-|v| dt / l)``, ``cos psi = (1 - tau^2) / (1 +
+    tau^2)`` and ``sin psi = 2 tau / (1 + tau^2)``, and ``e(theta_1)`` is ``e(theta_0)``
+    turned by ``psi_0 - psi_1``; only the arc at a limit takes angles.
     """
     n = pos.shape[1]
     for k in numba.prange(n):
         vx = v[0, k]
         vy = v[1, k]
-        c = math.cos(theta[k])
-        s = math.sin(theta[k])
+        c = heading[0, k]
+        s = heading[1, k]
         along = c * vx + s * vy
         across = c * vy - s * vx
         speed = math.sqrt(vx * vx + vy * vy)
-        psi0 = math.atan2(across, along)
-        psi1 = 2.0 * math.atan(math.tan(0.5 * psi0) * math.exp(-speed * dt / lookahead[k]))
-        a0 = abs(psi0)
-        a1 = abs(psi1)
-        top_cos = max(abs(math.cos(psi0)), abs(math.cos(psi1)))
-        top_sin = (
-            1.0 if a1 <= 0.5 * math.pi <= a0 else max(abs(math.sin(psi0)), abs(math.sin(psi1)))
-        )
-        if speed * top_cos <= v_max[k] and speed * top_sin <= omega_max[k] * lookahead[k]:
+        ell = lookahead[k]
+        # cos and sin of psi_0 and psi_1 through tau = tan(psi / 2)
+        if speed > 0.0:
+            c0 = along / speed
+            s0 = across / speed
+        else:
+            c0 = 1.0
+            s0 = 0.0
+        decay = math.exp(-speed * dt / ell)
+        if c0 < 0.0 and s0 == 0.0:  # psi_0 = pi: the law's unstable rest, no turn
+            c1 = -1.0
+            s1 = 0.0
+        else:
+            # tan(psi_0 / 2) by the form without cancellation on each side of pi / 2
+            tau = s0 / (1.0 + c0) if c0 >= 0.0 else (1.0 - c0) / s0
+            tau *= decay
+            if abs(tau) <= 1.0:
+                q = tau * tau
+                c1 = (1.0 - q) / (1.0 + q)
+                s1 = 2.0 * tau / (1.0 + q)
+            else:
+                w = 1.0 / tau
+                q = w * w
+                c1 = (q - 1.0) / (q + 1.0)
+                s1 = 2.0 * w / (q + 1.0)
+        top_cos = max(abs(c0), abs(c1))
+        top_sin = 1.0 if c1 >= 0.0 >= c0 else max(abs(s0), abs(s1))
+        # the turn psi_0 - psi_1 as a rotation
+        rc = c0 * c1 + s0 * s1
+        rs = s0 * c1 - c0 * s1
+        if speed * top_cos <= v_max[k] and speed * top_sin <= omega_max[k] * ell:
             # within the limits: the exact hold, the point ahead moves by v dt
-            turn = psi0 - psi1
-            ddx = vx * dt + lookahead[k] * (c - math.cos(theta[k] + turn))
-            ddy = vy * dt + lookahead[k] * (s - math.sin(theta[k] + turn))
+            nc = c * rc - s * rs
+            ns = s * rc + c * rs
+            ddx = vx * dt + ell * (c - nc)
+            ddy = vy * dt + ell * (s - ns)
         else:
             # at a limit: one arc of the clipped (u, omega)
-            omega = min(max((psi0 - psi1) / dt, -omega_max[k]), omega_max[k])
+            omega = min(max(math.atan2(rs, rc) / dt, -omega_max[k]), omega_max[k])
             u = min(max(along, -v_max[k]), v_max[k])
             half = 0.5 * omega * dt
             sinc = math.sin(half) / half if abs(half) > 1e-6 else 1.0 - half * half / 6.0
-            mid = theta[k] + half
-            ddx = u * dt * sinc * math.cos(mid)
-            ddy = u * dt * sinc * math.sin(mid)
-            turn = omega * dt
+            hc = math.cos(half)
+            hs = math.sin(half)
+            ddx = u * dt * sinc * (c * hc - s * hs)
+            ddy = u * dt * sinc * (s * hc + c * hs)
+            tc = hc * hc - hs * hs
+            ts = 2.0 * hs * hc
+            nc = c * tc - s * ts
+            ns = s * tc + c * ts
+        norm = math.sqrt(nc * nc + ns * ns)
+        heading[0, k] = nc / norm
+        heading[1, k] = ns / norm
         applied[0, k] = ddx / dt
         applied[1, k] = ddy / dt
         px = pos[0, k] + ddx + noise[0, k] * scale
@@ -127,8 +162,6 @@ def _unicycle_step(
             py = 2.0 * y1 - py
         pos[0, k] = min(max(px, x0), x1)
         pos[1, k] = min(max(py, y0), y1)
-        heading = theta[k] + turn
-        theta[k] = heading - 2.0 * math.pi * math.floor((heading + math.pi) / (2.0 * math.pi))
 
 
 unicycle_step = SerialParallel(_unicycle_step, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS)
