@@ -9,6 +9,7 @@ import pytest
 from mcap.stream_reader import StreamReader
 
 from harness import api
+from harness.agents import interpolate
 from harness.build import build
 from harness.control import HeatControl, LangevinControl, PaperControl, paper_law
 from harness.densities import DEFAULT_TARGET, Target
@@ -17,7 +18,7 @@ from harness.fokker_planck import FokkerPlanck, rate
 from harness.grid import Grid
 from harness.kde import KDE
 from harness.moving import RotatingMixture, TargetPath
-from harness.records import ControlInput, Estimate
+from harness.records import ControlInput, Estimate, RobotEstimates
 from harness.run import run
 from harness.smoothing import smoothed_target
 from harness.velocity import VelocityField
@@ -296,3 +297,25 @@ def test_swarm_floor_changes_little_along_a_turn():
     base, spread = means[0]
     for mean, err in means[1:]:
         assert abs(mean - base) < 3 * np.hypot(spread, err)
+
+
+def test_robots_with_their_own_estimates_get_the_feedforward_too(rng):
+    # every robot holding the same estimate moves as a robot that interpolates the
+    # broadcast field, feedforward included (harness.robot_law)
+    grid = Grid.square(16)
+    path = TargetPath(Target.from_density(grid, moving(0.01)))
+    t = 2.0
+    now, dp = path.at(t), path.rate(t)
+    p = 0.8 * now.p + 0.2
+    n = 50
+    own = RobotEstimates(np.tile(p.ravel(), (n, 1)), None)
+    est = Estimate(p, grid.gradient(p), robots=own)
+    positions = rng.uniform(0.0, 1.0, (2, n))
+    law = PaperControl(path.start, alpha=0.003, sigma=5e-5, feedforward=True)
+    command = law(ControlInput(t, est, positions, target=now, target_rate=dp))
+    assert command.robots is not None and command.field is not None
+    expected = interpolate(grid, command.field.centres, positions)
+    assert np.allclose(command.robots, expected, rtol=1e-12, atol=1e-15)
+    plain = PaperControl(path.start, alpha=0.003, sigma=5e-5)
+    without = plain(ControlInput(t, est, positions, target=now, target_rate=dp)).robots
+    assert not np.allclose(command.robots, without)
