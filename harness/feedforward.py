@@ -43,11 +43,19 @@ from __future__ import annotations
 import numpy as np
 import scipy.fft as sfft
 
+from harness.compiled.feedforward import sg_velocity_faces
 from harness.densities import Target
 from harness.grid import Grid
 from harness.velocity import VelocityField
 
-__all__ = ["NeumannPoisson", "bernoulli_and_slope", "feedforward", "sg_flux", "sg_velocity"]
+__all__ = [
+    "NeumannPoisson",
+    "bernoulli_and_slope",
+    "feedforward",
+    "sg_flux",
+    "sg_velocity",
+    "sg_velocity_reference",
+]
 
 
 class NeumannPoisson:
@@ -146,7 +154,35 @@ def sg_velocity(
     max_iter: int = 100,
 ) -> np.ndarray:
     """The face velocity ``u`` whose Scharfetter-Gummel flux of ``(p_L, p_R)`` is
-    ``flux`` (length / s), the inverse of :func:`sg_flux` in ``u``.
+    ``flux`` (length / s), the inverse of :func:`sg_flux` in ``u``: compiled, face by
+    face (:func:`harness.compiled.feedforward.sg_velocity_faces`), by the iteration of
+    :func:`sg_velocity_reference` (which holds the equation), each face stopping on its
+    own (the two agree to round-off, not bit for bit).
+
+    Raises:
+        ArithmeticError: when some face has not converged in ``max_iter`` steps.
+    """
+    flux, p_left, p_right = (np.asarray(a, dtype=float).ravel() for a in (flux, p_left, p_right))
+    if sigma == 0:
+        return sg_velocity_reference(flux, p_left, p_right, sigma, h)
+    spacing = np.broadcast_to(np.asarray(h, dtype=float), flux.shape).ravel()
+    u, ok = sg_velocity_faces(flux, p_left, p_right, float(sigma), spacing, max_iter)
+    if not ok:
+        raise ArithmeticError("the Scharfetter-Gummel velocity did not converge")
+    return u
+
+
+def sg_velocity_reference(
+    flux: np.ndarray,
+    p_left: np.ndarray,
+    p_right: np.ndarray,
+    sigma: float,
+    h: float | np.ndarray,
+    max_iter: int = 100,
+) -> np.ndarray:
+    """Numpy statement of :func:`sg_velocity`: the face velocity ``u`` whose
+    Scharfetter-Gummel flux of ``(p_L, p_R)`` is ``flux`` (length / s), the inverse of
+    :func:`sg_flux` in ``u``, all faces iterated together until every one has converged.
 
     With ``z = u h / sigma`` the flux is ``(sigma / h) g(z)``, ``g(z) = (B(z) + z) p_L -
     B(z) p_R``, and ``g'(z) = (1 + B'(z)) p_L - B'(z) p_R`` lies between ``p_L`` and

@@ -13,7 +13,7 @@ from harness.agents import interpolate
 from harness.build import build
 from harness.control import HeatControl, LangevinControl, PaperControl, paper_law
 from harness.densities import DEFAULT_TARGET, Target
-from harness.feedforward import NeumannPoisson, sg_flux, sg_velocity
+from harness.feedforward import NeumannPoisson, sg_flux, sg_velocity, sg_velocity_reference
 from harness.fokker_planck import FokkerPlanck, rate
 from harness.grid import Grid
 from harness.kde import KDE
@@ -150,6 +150,8 @@ def test_sg_velocity_inverts_the_scharfetter_gummel_flux(rng):
         flux = sg_flux(u, p_left, p_right, sigma, 1 / 30)
         back = sg_velocity(flux, p_left, p_right, sigma, 1 / 30)
         assert np.allclose(back, u, rtol=1e-10, atol=1e-16)
+        reference = sg_velocity_reference(flux, p_left, p_right, sigma, 1 / 30)
+        assert np.allclose(back, reference, rtol=1e-13, atol=1e-18)
 
 
 @pytest.mark.parametrize("sigma", [5e-5, 1e-2, 0.0])
