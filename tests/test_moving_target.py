@@ -149,9 +149,13 @@ def test_sg_velocity_inverts_the_scharfetter_gummel_flux(rng):
     for sigma in (5e-5, 1e-2, 0.0):
         flux = sg_flux(u, p_left, p_right, sigma, 1 / 30)
         back = sg_velocity(flux, p_left, p_right, sigma, 1 / 30)
-        assert np.allclose(back, u, rtol=1e-10, atol=1e-16)
+        # a velocity far below sigma / h moves the flux only in its last bits: compare
+        # the fluxes, and the velocities on the scale of the largest
+        scale = np.abs(flux) + sigma * 30 * (p_left + p_right)
+        assert np.all(np.abs(sg_flux(back, p_left, p_right, sigma, 1 / 30) - flux) < 1e-14 * scale)
+        assert np.allclose(back, u, rtol=1e-12, atol=1e-14 * np.abs(u).max())
         reference = sg_velocity_reference(flux, p_left, p_right, sigma, 1 / 30)
-        assert np.allclose(back, reference, rtol=1e-13, atol=1e-18)
+        assert np.allclose(back, reference, rtol=1e-12, atol=1e-14 * np.abs(u).max())
 
 
 @pytest.mark.parametrize("sigma", [5e-5, 1e-2, 0.0])
