@@ -489,7 +489,9 @@ class PaperControl(FieldLaw):
 
             dV/dt = -int (alpha p + sigma p_*) |grad(p / p_*)|^2,
 
-        the static loop's identity, with no smallness condition on ``|w|``. The
+        the static loop's identity, with no smallness condition on ``|w|`` (in the
+        continuum; on the grid the cancellation holds up to the discretisation, whose
+        residual is estimated below). The
         Poincare inequality (eq. ``poincare inequality`` with ``g = p_*(t)``, constant
         ``lambda(t)``) gives ``dV/dt <= -2 (sigma + alpha min_x p / p_*) lambda(t) V``,
         about ``-2 (alpha + sigma) lambda V`` near the target: with exact estimates the
@@ -519,9 +521,12 @@ class PaperControl(FieldLaw):
         p_*(t_{n+1}) + dt A_n p_*(t_{n+1}) = dt^2 (A_n d_t p_* - d_t^2 p_* / 2) +
         O(dt^3)``, an input of size ``rho = dt ||A_n d_t p_* - d_t^2 p_* / 2||_{L2(1/p_*)}``
         per unit time, so by the same bound the residual is ``y <= rho / r``: first
-        order in ``dt``, and about ``dt omega`` times the lag without the feedforward
-        for a target turning at ``omega`` (``tests/test_moving_target.py`` computes both
-        predictions and compares them with the loop).
+        order in ``dt``, of the order of ``dt omega`` times the lag without the
+        feedforward for a target turning at ``omega`` (``A d_t p_*`` and ``d_t^2 p_*``
+        are both about ``omega |d_t p_*|``). The bounds use the slowest rate ``r`` and
+        overestimate; ``tests/test_moving_target.py`` predicts both errors sharply from
+        the loop's linearisation about ``p_*(t)``, ``L Phi = -s`` with the input ``s =
+        -d_t p_*`` or ``s = rho``, and compares them with the loop.
         """
         if not self.feedforward:
             return None
