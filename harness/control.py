@@ -526,7 +526,8 @@ class PaperControl(FieldLaw):
         are both about ``omega |d_t p_*|``). The bounds use the slowest rate ``r`` and
         overestimate; ``tests/test_moving_target.py`` predicts both errors sharply from
         the loop's linearisation about ``p_*(t)``, ``L Phi = -s`` with the input ``s =
-        -d_t p_*`` or ``s = rho``, and compares them with the loop.
+        -d_t p_*`` or ``s = dt (A d_t p_* - d_t^2 p_* / 2)``, and compares them with the
+        loop.
         """
         if not self.feedforward:
             return None
