@@ -491,11 +491,11 @@ class PaperControl(FieldLaw):
 
         the static loop's identity, with no smallness condition on ``|w|`` (in the
         continuum; on the grid the cancellation holds up to the discretisation, whose
-        residual is estimated below). The
-        Poincare inequality (eq. ``poincare inequality`` with ``g = p_*(t)``, constant
-        ``lambda(t)``) gives ``dV/dt <= -2 (sigma + alpha min_x p / p_*) lambda(t) V``,
-        about ``-2 (alpha + sigma) lambda V`` near the target: with exact estimates the
-        tracking error decays to zero at the static rate. The feedforward reads no
+        residual is estimated below). The Poincare inequality (eq. ``poincare
+        inequality`` with ``g = p_*(t)``, constant ``lambda(t)``) gives ``dV/dt <= -2
+        (sigma + alpha min_x p / p_*) lambda(t) V``, about ``-2 (alpha + sigma) lambda
+        V`` near the target: with exact estimates the tracking error decays to zero at
+        the static rate. The feedforward reads no
         estimate, so with estimates the proof of Theorem ``thm:ISS`` goes through at
         every ``t`` unchanged (the same estimation-error terms), its constants taken
         uniformly in ``t``: ``inf_t lambda(t)`` and the bounds of ``p_*(t)`` and
@@ -524,7 +524,8 @@ class PaperControl(FieldLaw):
         order in ``dt``, of the order of ``dt omega`` times the lag without the
         feedforward for a target turning at ``omega`` (``A d_t p_*`` and ``d_t^2 p_*``
         are both about ``omega |d_t p_*|``). The bounds use the slowest rate ``r`` and
-        overestimate; ``tests/test_moving_target.py`` predicts both errors sharply from
+        overestimate (by about 13 times in the test's setting, where ``d_t p_*`` lies
+        in faster modes); ``tests/test_moving_target.py`` predicts both errors sharply from
         the loop's linearisation about ``p_*(t)``, ``L Phi = -s`` with the input ``s =
         -d_t p_*`` or ``s = dt (A d_t p_* - d_t^2 p_* / 2)``, and compares them with the
         loop.
