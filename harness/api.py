@@ -174,7 +174,9 @@ def _steps(parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]
     context = RunContext(Path.cwd())
     parts.spent.append(True)
     rng = np.random.default_rng(parts.seed)
-    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, parts.dt, rng)
+    loop = ClosedLoop(
+        parts.plant, parts.estimator, parts.control, parts.model, parts.dt, rng, target=parts.target
+    )
     blas = ThreadpoolController()
     state, reason = "aborted", "the caller stopped iterating"
     started: list = []

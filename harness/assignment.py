@@ -520,6 +520,8 @@ class AssignmentControl:
     """
 
     gives_field: ClassVar[bool] = True
+    # precomputed from the static target: refused with target=moving (harness.build)
+    follows_moving_target: ClassVar[bool] = False
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = True
     uses: ClassVar[str] = "positions, target cell masses"

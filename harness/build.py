@@ -43,6 +43,7 @@ from harness.densities import Target
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.identity import RunIdentity, resolved
+from harness.moving import moves
 from harness.observers import Observer
 
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z_][\w.]*)\}$")
@@ -246,6 +247,31 @@ def _check_parts(plant: Plant, estimator: Estimator, control: Control) -> None:
             raise ConfigError(err.name, err.value, err.allowed) from None
 
 
+def _on_path(cfg: DictConfig, density: Density, grid: Grid) -> Density:
+    """``density``, after its own check of its path on ``grid`` (a moving target's
+    ``check(grid)``, :class:`harness.moving.RotatingMixture`), refused naming the key.
+    """
+    check = getattr(density, "check", None)
+    if check is not None:
+        try:
+            check(grid)
+        except ParameterError as err:
+            raise ConfigError(public_key(cfg, "target", err.name), err.value, err.allowed) from None
+    return density
+
+
+def _check_follows(target: Target, control: Control) -> None:
+    """Refuse a law that cannot follow a moving target (its ``follows_moving_target``
+    absent or false) when the target moves.
+    """
+    if moves(target) and not getattr(control, "follows_moving_target", False):
+        raise ConfigError(
+            "control",
+            type(control).__name__,
+            "a law that follows a moving target p_*(t) (paper, heat, langevin) with target=moving",
+        )
+
+
 @dataclass(frozen=True)
 class Experiment:
     """Everything one run needs (see :func:`build`).
@@ -302,11 +328,12 @@ def build(cfg: DictConfig) -> Experiment:
     check_shared(cfg)
     grid = Grid.square(cfg.grid.n, cfg.grid.length)
     check_memory(cfg, grid)
-    target = target_on_grid(component(cfg, "target", data), grid)
+    target = target_on_grid(_on_path(cfg, component(cfg, "target", data), grid), grid)
     init = component(cfg, "init", data)
     p0 = density_on_grid("init", init, grid)
     model = FokkerPlanck(grid, cfg.dynamics.sigma)
     control = component(cfg, "control", data, target=target)
+    _check_follows(target, control)
     plant = component(cfg, "plant", data, grid=grid, model=model, init=init, control=control)
     estimator = component(cfg, "estimator", data, grid=grid, model=model)
     _check_parts(plant, estimator, control)

@@ -252,6 +252,9 @@ class Control(Protocol):
             (:func:`needs_robots`).
         v_max: The speed cap (length / s) every command is capped at
             (:meth:`harness.records.Command.capped`), or None.
+        follows_moving_target: Whether the law follows a moving target, ``p_*(t)`` in
+            ``ControlInput.target`` (:mod:`harness.moving`). Optional; false when
+            absent, and ``target=moving`` then refuses the law.
     """
 
     gives_field: bool

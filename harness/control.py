@@ -11,18 +11,29 @@ density estimate ``p_hat`` (``(ny, nx)``, 1 / length^2), the gradient estimate
 ``alpha >= 0`` (length^4 / time, so that ``alpha grad(p / p_*)`` is a velocity) and the
 noise intensity ``sigma >= 0`` (length^2 / time), and return a
 :class:`~harness.velocity.VelocityField` (length / time).
+
+Moving targets (``target=moving``, :mod:`harness.moving`). Every field law follows
+``p_*(t)``: given the target at the step's time (:attr:`ControlInput.target
+<harness.records.ControlInput.target>`) it evaluates its equation with that target in
+place of its own (:meth:`FieldLaw.at_target`). The paper's law can add the feedforward
+``w`` with ``div(p_* w) = -d_t p_*`` (``control.feedforward``,
+:meth:`PaperControl.feedforward_field`, derived there).
 """
 
 from __future__ import annotations
 
-from typing import ClassVar
+import copy
+from typing import ClassVar, Self
 
 import numpy as np
 
+from harness.agents import interpolate
 from harness.compiled.control import paper_velocity
 from harness.components import flag, number, speed_cap
 from harness.densities import Target
+from harness.feedforward import NeumannPoisson, feedforward
 from harness.grid import Grid
+from harness.moving import TargetPath
 from harness.records import Command, ControlInput
 from harness.robot_law import own_velocities
 from harness.smoothing import smoothed_target, transfer
@@ -252,8 +263,12 @@ class FieldLaw:
             and :meth:`at_cells` (a subclass that redefines :meth:`field` without
             :meth:`at_cells` would move each robot by its parent's law, so it is false
             there). Set when the class is created, unless the class body sets it.
+        follows_moving_target: True: the law follows a moving target ``p_*(t)``
+            (:meth:`__call__`); the builder refuses ``target=moving`` for a law without
+            this attribute set (:func:`harness.build.build`).
     """
 
+    follows_moving_target: ClassVar[bool] = True
     gives_field: ClassVar[bool] = True
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = False
@@ -287,16 +302,59 @@ class FieldLaw:
         """
         raise NotImplementedError
 
+    def at_target(self, target: Target) -> Self:
+        """This law for the target ``target`` (``p_*(t)`` of a moving target): a
+        shallow copy whose target, and whatever the law derives from it, is that one.
+        """
+        law = copy.copy(self)
+        law.retarget(target)
+        return law
+
+    def retarget(self, target: Target) -> None:
+        """Put ``target`` in place of the law's target (a subclass that derives
+        quantities from the target derives them again).
+        """
+        self.target = target
+
+    def feedforward_field(self, target: Target, rate: np.ndarray) -> VelocityField | None:
+        """The feedforward added to the field for a target moving at ``d_t p_* =
+        rate``, or None (a law without one).
+        """
+        return None
+
+    def moving_target(self, inp: ControlInput) -> tuple[Target | None, np.ndarray | None]:
+        """``(p_*(t), d_t p_*)`` at ``inp.t``: the input's when it carries them, else
+        the law's own target's path when that moves (a caller that does not fill them,
+        such as the agents plant's ``N -> infinity`` limit); ``(None, None)`` for a
+        static target.
+        """
+        if inp.target is not None:
+            return inp.target, inp.target_rate
+        path = self.__dict__.get("_path")
+        if path is None:
+            path = TargetPath(self.target)
+            self.__dict__["_path"] = path
+        if not path.moves:
+            return None, None
+        return path.at(inp.t), path.rate(inp.t)
+
     def __call__(self, inp: ControlInput) -> Command:
         """The field of the estimate; with each robot's own estimate, each robot's own
-        velocity too (the class docstring).
+        velocity too (the class docstring). For a moving target, the law at ``p_*(t)``
+        (:meth:`at_target`) plus its feedforward (:meth:`feedforward_field`), which
+        robots interpolate bilinearly; the speed cap applies to the sum.
 
         Raises:
             ValueError: for robots' own estimates given to a law without
                 ``own_estimates``, or without the robots' positions.
         """
+        target, rate = self.moving_target(inp)
+        law = self if target is None else self.at_target(target)
+        ff = None if target is None or rate is None else law.feedforward_field(target, rate)
         est = inp.estimate
-        v = self.field(est.p_hat, est.q_hat)
+        v = law.field(est.p_hat, est.q_hat)
+        if ff is not None:
+            v = VelocityField(v.centres + ff.centres, v.face_x + ff.face_x, v.face_y + ff.face_y)
         own = est.robots
         if own is None:
             return Command(v).capped(self.v_max)
@@ -306,7 +364,9 @@ class FieldLaw:
                 "(it has no at_cells of its own, or the plant has no robots)"
             )
         grid = self.target.grid
-        robots = own_velocities(grid, self.at_cells, own.p_hat, inp.positions, own.q_hat)
+        robots = own_velocities(grid, law.at_cells, own.p_hat, inp.positions, own.q_hat)
+        if ff is not None:
+            robots = robots + interpolate(grid, ff.centres, inp.positions)
         return Command(v, robots).capped(self.v_max)
 
 
@@ -351,6 +411,10 @@ class PaperControl(FieldLaw):
     benchmarks.debias_check --certificate``). What the debiased law gives up is the
     guarantee on modes below the kernel's scale, which the KDE cannot see anyway.
 
+    Moving target (``target=moving``): the law at ``p_*(t)``, plus with ``feedforward``
+    the velocity ``w`` of :meth:`feedforward_field` (its docstring derives what it does
+    to the closed loop and to the ISS argument).
+
     Args:
         target: The target on the grid (run-time argument).
         alpha: Feedback gain ``>= 0`` (length^4 / s).
@@ -359,6 +423,8 @@ class PaperControl(FieldLaw):
         bandwidth: The KDE's bandwidth ``h`` (length), for ``debias``.
         mirror: The KDE's wall images, for ``debias``.
         v_max: Speed cap (length / s), or None.
+        feedforward: Add the feedforward ``w`` for a moving target (no effect on a
+            static one).
     """
 
     def __init__(
@@ -370,12 +436,106 @@ class PaperControl(FieldLaw):
         bandwidth: float | None = None,
         mirror: bool = True,
         v_max: float | None = None,
+        feedforward: bool = False,
     ) -> None:
         self.target = target
         self.alpha = number("alpha", alpha, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
+        self._debias = (debias, bandwidth, mirror)
         self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
         self.v_max = speed_cap(v_max)
+        self.feedforward = flag("feedforward", feedforward)
+        self._poisson: NeumannPoisson | None = None
+
+    def retarget(self, target: Target) -> None:
+        """``target`` and its feedback target (smoothed again when debiased)."""
+        self.target = target
+        self.feedback_target = _feedback_target(target, *self._debias)
+
+    def feedforward_field(self, target: Target, rate: np.ndarray) -> VelocityField | None:
+        """The feedforward ``w`` for ``p_*(t) = target`` moving at ``d_t p_* = rate``
+        (length / s), None unless ``feedforward``:
+
+            div(p_* w) = -d_t p_*,   (p_* w) . n = 0 on the walls,
+
+        solved as ``p_* w = grad phi``, ``Laplacian phi = -d_t p_*`` with Neumann walls
+        and zero mean (compatible because ``int d_t p_* = 0``), on the grid with the
+        Fokker-Planck step's own divergence (:func:`harness.feedforward.feedforward`).
+
+        Closed loop. With ``v = -alpha grad(p / p_*) + sigma grad log p_* + w`` and
+        exact estimates, the computation in the proof of Theorem ``thm:exponential
+        stability`` (eq. ``modified density feedback law 1`` in eq. ``FP equation``)
+        gains the transport by ``w``:
+
+            d_t p = div((alpha p + sigma p_*) grad(p / p_*)) - div(p w),
+
+        so the tracking error ``Phi = p - p_*(t)`` obeys
+
+            d_t Phi = div((alpha p + sigma p_*) grad(p / p_*))
+                      - [div(p_* w) + d_t p_*] - div(Phi w),
+
+        where the bracket is zero with the feedforward and is ``d_t p_*`` without it (a
+        forcing of eq. ``tracking error equation``). With the feedforward what is left
+        beyond the static loop is ``-div(Phi w)``, and it is not a further input: for
+        ``V = 1/2 int Phi^2 / p_*`` (whose weight now moves) and ``f = Phi / p_* = p /
+        p_* - 1``,
+
+            dV/dt = int f d_t Phi - 1/2 int f^2 d_t p_*,
+
+        and the transport term is ``-int f div(Phi w) = int p_* f w . grad f = 1/2 int
+        p_* w . grad(f^2) = -1/2 int f^2 div(p_* w) = 1/2 int f^2 d_t p_*`` (the wall
+        term vanishes since ``p_* w . n = 0``): it cancels the moving weight's term
+        exactly, and
+
+            dV/dt = -int (alpha p + sigma p_*) |grad(p / p_*)|^2,
+
+        the static loop's identity, with no smallness condition on ``|w|`` (in the
+        continuum; on the grid the cancellation holds up to the discretisation, whose
+        residual is estimated below). The Poincare inequality (eq. ``poincare
+        inequality`` with ``g = p_*(t)``, constant ``lambda(t)``) gives ``dV/dt <= -2
+        (sigma + alpha min_x p / p_*) lambda(t) V``, about ``-2 (alpha + sigma) lambda
+        V`` near the target: with exact estimates the tracking error decays to zero at
+        the static rate. The feedforward reads no
+        estimate, so with estimates the proof of Theorem ``thm:ISS`` goes through at
+        every ``t`` unchanged (the same estimation-error terms), its constants taken
+        uniformly in ``t``: ``inf_t lambda(t)`` and the bounds of ``p_*(t)`` and
+        ``|grad p_*(t)|``, which for the rotating mixture are the static target's up
+        to the walls (:mod:`harness.moving`).
+
+        Without the feedforward, ``dV/dt = -int (alpha p + sigma p_*) |grad f|^2 - int
+        f d_t p_* - 1/2 int f^2 d_t p_*``; with the decay rate ``r`` of the first term
+        (``dissipation >= 2 r V``), ``m = max |d_t p_* / p_*|`` and ``y = sqrt(2 V) =
+        ||Phi||_{L2(1/p_*)}``,
+
+            dy/dt <= -(r - m / 2) y + ||d_t p_*||_{L2(1/p_*)},
+
+        ISS with respect to ``d_t p_*`` provided ``m < 2 r`` (the target may not change
+        faster, relatively, than twice the decay rate), with the residual lag ``y <=
+        sup_t ||d_t p_*||_{L2(1/p_*)} / (r - m / 2)``.
+
+        Residual with the feedforward on the grid. The feedforward makes ``p =
+        p_*(t)`` an exact solution of the semi-discrete loop (``A(v + w) p_* = d_t
+        p_*``, :mod:`harness.feedforward`); what remains is the sampled data: the
+        command is computed at ``t_n`` and held, and the step is backward Euler. Per
+        step the target's own path misses the step by ``tau_n = p_*(t_n) -
+        p_*(t_{n+1}) + dt A_n p_*(t_{n+1}) = dt^2 (A_n d_t p_* - d_t^2 p_* / 2) +
+        O(dt^3)``, an input of size ``rho = dt ||A_n d_t p_* - d_t^2 p_* / 2||_{L2(1/p_*)}``
+        per unit time, so by the same bound the residual is ``y <= rho / r``: first
+        order in ``dt``, of the order of ``dt omega`` times the lag without the
+        feedforward for a target turning at ``omega`` (``A d_t p_*`` and ``d_t^2 p_*``
+        are both about ``omega |d_t p_*|``). The bounds use the slowest rate ``r`` and
+        overestimate (by about 13 times in the test's setting, where ``d_t p_*`` lies
+        in faster modes); ``tests/test_moving_target.py`` predicts both errors sharply from
+        the loop's linearisation about ``p_*(t)``, ``L Phi = -s`` with the input ``s =
+        -d_t p_*`` or ``s = dt (A d_t p_* - d_t^2 p_* / 2)``, and compares them with the
+        loop.
+        """
+        if not self.feedforward:
+            return None
+        if self._poisson is None or self._poisson.grid != target.grid:
+            self._poisson = NeumannPoisson(target.grid)
+        # div(p_* w) = -d_t p_*, (p_* w) . n = 0
+        return feedforward(target, rate, self.sigma, self._poisson)
 
     def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The velocity by eq. ``modified density feedback law using estimates``."""
@@ -458,7 +618,13 @@ class HeatControl(FieldLaw):
         self.sigma = number("sigma", sigma, 0.0)
         self.density_floor = number("density_floor", density_floor, 0.0, strict=True)
         self.noise_compensation = flag("noise_compensation", noise_compensation)
+        self._debias = (debias, bandwidth, mirror)
         self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
+
+    def retarget(self, target: Target) -> None:
+        """``target`` and its feedback target (smoothed again when debiased)."""
+        self.target = target
+        self.feedback_target = _feedback_target(target, *self._debias)
 
     def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The heat-equation law of :func:`heat_law`."""
@@ -524,10 +690,14 @@ class LangevinControl(FieldLaw):
     uses = "target score"
 
     def __init__(self, target: Target, sigma: float, v_max: float | None = None) -> None:
-        self.target = target
         self.alpha = 0.0
         self.sigma = number("sigma", sigma, 0.0)
         self.v_max = speed_cap(v_max)
+        self.retarget(target)
+
+    def retarget(self, target: Target) -> None:
+        """``target`` and its drift ``sigma grad log p_*``."""
+        self.target = target
         zero = np.zeros(target.grid.shape)
         self._field = paper_law(zero, np.zeros((2, *zero.shape)), target, 0.0, self.sigma)
 

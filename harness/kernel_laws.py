@@ -340,6 +340,8 @@ class MMDControl:
     """
 
     gives_field: ClassVar[bool] = True
+    # precomputed from the static target: refused with target=moving (harness.build)
+    follows_moving_target: ClassVar[bool] = False
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = False
 
@@ -545,6 +547,8 @@ class SVGDControl:
     """
 
     gives_field: ClassVar[bool] = True
+    # precomputed from the static target: refused with target=moving (harness.build)
+    follows_moving_target: ClassVar[bool] = False
     own_estimates: ClassVar[bool] = False
     needs_robots: ClassVar[bool] = False
 

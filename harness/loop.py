@@ -14,7 +14,8 @@ step):
 3. the estimator predicts under ``v_n`` and updates with the measurement;
 4. the control gives ``u_{n+1}`` from what it uses (:class:`~harness.records.ControlInput`:
    the time, the estimate, the robots' positions as observed, or without robots the
-   mean-field density that stands for them).
+   mean-field density that stands for them; for a moving target, ``p_*(t_{n+1})`` and
+   ``d_t p_*`` there, :class:`harness.moving.TargetPath`).
 
 Errors are measured against the plant's mean-field density ``p`` (notes section 5):
 ``Phi = p - p_*``, ``eps = p_hat - p`` and ``eps_g = q_hat - grad p``, the states of the
@@ -27,7 +28,9 @@ from __future__ import annotations
 import numpy as np
 
 from harness.components import Control, Estimator, Plant
+from harness.densities import Target
 from harness.fokker_planck import FokkerPlanck, NumericalError
+from harness.moving import TargetPath
 from harness.records import Command, ControlInput, Estimate, Measurement, StepInput, StepRecord
 
 
@@ -50,6 +53,9 @@ class ClosedLoop:
         rng: The run's random generator (robots, synthetic noise).
         mass_drift: Largest relative change of ``int p`` from its start before the run
             counts as diverged (1).
+        target: The run's target at ``t = 0``; when it moves (:func:`harness.moving.moves`)
+            the law is given ``p_*(t)`` and ``d_t p_*`` at every step. None, or a static
+            target: the law's own target (the control input carries none).
     """
 
     def __init__(
@@ -61,6 +67,7 @@ class ClosedLoop:
         dt: float,
         rng: np.random.Generator,
         mass_drift: float = 1e-6,
+        target: Target | None = None,
     ) -> None:
         self.plant, self.estimator, self.control = plant, estimator, control
         self.model, self.dt, self.rng = model, dt, rng
@@ -69,6 +76,7 @@ class ClosedLoop:
         self.mass0 = float("nan")
         self.n = 0
         self.command: Command | None = None
+        self.path = None if target is None else TargetPath(target)
 
     @property
     def t(self) -> float:
@@ -83,7 +91,12 @@ class ClosedLoop:
             raise NumericalError("the estimate became non-finite")
         seen = observed(self.plant)
         density = self.plant.density if seen is None else None
-        command = self.control(ControlInput(self.t, est, seen, density))
+        if self.path is not None and self.path.moves:
+            t = self.t
+            inp = ControlInput(t, est, seen, density, self.path.at(t), self.path.rate(t))
+        else:
+            inp = ControlInput(self.t, est, seen, density)
+        command = self.control(inp)
         if not command.is_finite():
             raise NumericalError("the command became non-finite")
         return command

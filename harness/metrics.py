@@ -26,6 +26,11 @@ swarm more evenly than independent samples, so a controlled swarm may sit below 
 ``phat_smoothed_target_l2`` = ``||p_hat - K_h p_*||`` (every step) is the Fig. 2
 quantity for a debiased loop, whose estimates settle on ``K_h p_*``, not ``p_*``.
 
+A moving target (``target=moving``, :mod:`harness.moving`): every metric compares with
+the target at the step's time, ``p_*(t)`` (:class:`harness.moving.TargetPath`), so
+``phi_l2`` is the tracking error. The finite-N floors are those of ``p_*(0)``
+(:class:`SwarmTruth`).
+
 Which keys the log carries, and in which order, is the log's contract
 (:data:`harness.mcap_log.METRIC_KEYS`).
 """
@@ -40,6 +45,7 @@ from harness.densities import Target
 from harness.floor_cache import FloorCache
 from harness.grid import Grid
 from harness.kde import KDE
+from harness.moving import TargetPath
 from harness.observers import RunContext, Status
 from harness.records import StepRecord
 from harness.smoothing import Smoother, smoothed_target
@@ -99,6 +105,7 @@ class FieldMetrics:
     def __init__(self, grid: Grid, target: Target, control: Control, sigma: float) -> None:
         self.grid, self.target, self.control = grid, target, control
         self.sigma = number("sigma", sigma, 0.0)
+        self.path = TargetPath(target)
 
     def initialize(self, run: RunContext) -> None:
         """``poincare_lambda`` and ``rate_exact`` into the theory record."""
@@ -115,8 +122,8 @@ class FieldMetrics:
             run.theory["law_divides_by_density"] = "yes" if divides else "no"
 
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
-        """The step's field metrics."""
-        values.update(metrics(self.grid, self.target, rec))
+        """The step's field metrics, against the target at the step's time."""
+        values.update(metrics(self.grid, self.path.at(rec.t), rec))
 
     def finalize(self, status: Status) -> None:
         """Nothing to close."""
@@ -124,6 +131,14 @@ class FieldMetrics:
 
 class SwarmTruth:
     """The swarm metrics (see the module docstring), from robot positions.
+
+    Moving target: every metric compares with ``p_*(t)`` at the step's time
+    (``K_h p_*(t)`` exactly, the target measure of ``swarm_w2`` at ``t``). The finite-N
+    floors are those of ``p_*(0)``: the rotating mixture (:mod:`harness.moving`) keeps
+    its shape along the path up to the walls, which cut the bumps slightly differently
+    at every angle; for the default target on the paper's grid the mean floor of
+    ``swarm_l2`` changes by less than the Monte-Carlo spread of its estimate along a
+    turn (``tests/test_moving_target.py`` measures it).
 
     ``K_h p_*`` for ``swarm_l2`` is exact where the target's density has a closed form
     (:func:`harness.smoothing.smoothed_target`); ``K_h p_inf`` and, for a like-for-like
@@ -172,7 +187,8 @@ class SwarmTruth:
         floor_cache: str | None = None,
         plant: object = None,
     ) -> None:
-        self.grid, self.target = grid, target
+        self.path = TargetPath(target)
+        self.grid, self.target = grid, self.path.floor_target()
         self.has_limit = bool(getattr(plant, "has_limit", True))
         self.every = integer("every", every, 1)
         self.w2_every = integer("w2_every", w2_every, 1)
@@ -189,30 +205,56 @@ class SwarmTruth:
         self.run: RunContext | None = None
         self.kde = KDE(grid, bandwidth, mirror=mirror, method=method)
         self.smoother = Smoother(grid, bandwidth, mirror)
+        self.bandwidth, self.mirror = bandwidth, mirror
         self.smoothed_target = smoothed_target(target, bandwidth, mirror).p
         self.smoothed_target_cells = self.smoother(target.p)[0]
         self._measures: dict[int, TargetMeasure] = {}
+        self._at: tuple[float, np.ndarray, np.ndarray | None] | None = None
+
+    def smoothed_at(self, t: float, cells: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """``K_h p_*(t)`` exactly and, when ``cells``, the noise-free KDE of its cell
+        values (1 / length^2); the start's for a static target.
+        """
+        if not self.path.moves:
+            return self.smoothed_target, self.smoothed_target_cells
+        if self._at is None or self._at[0] != t or (cells and self._at[2] is None):
+            target = self.path.at(t)
+            exact = smoothed_target(target, self.bandwidth, self.mirror).p
+            self._at = (t, exact, self.smoother(target.p)[0] if cells else None)
+        return self._at[1], self._at[2]
 
     def __call__(self, rec: StepRecord) -> dict[str, float | None]:
         """The swarm metrics of ``rec`` (all None without robots or off their steps), and
         ``phat_smoothed_target_l2`` = ``||p_hat - K_h p_*||`` at every step.
         """
         out: dict[str, float | None] = dict.fromkeys(SWARM_KEYS)
-        out["phat_smoothed_target_l2"] = self.grid.l2(rec.estimate.p_hat - self.smoothed_target)
         last = rec.step == self.total_steps
-        if rec.positions is None or not (rec.step % self.every == 0 or last):
+        on_step = rec.positions is not None and (rec.step % self.every == 0 or last)
+        smoothed, smoothed_cells = self.smoothed_at(rec.t, on_step and self.has_limit)
+        out["phat_smoothed_target_l2"] = self.grid.l2(rec.estimate.p_hat - smoothed)
+        if rec.positions is None or not on_step:
             return out
         g = self.grid
         smooth_swarm, _ = self.kde(rec.positions)
-        out["swarm_l2"] = g.l2(smooth_swarm - self.smoothed_target)
+        out["swarm_l2"] = g.l2(smooth_swarm - smoothed)
         out["est_swarm_l2"] = g.l2(rec.estimate.p_hat - smooth_swarm)
         if self.has_limit:
+            assert smoothed_cells is not None
             smooth_limit = self.smoother(rec.p_true)[0]
             out["limit_swarm_l2"] = g.l2(smooth_swarm - smooth_limit)
-            out["limit_target_l2"] = g.l2(smooth_limit - self.smoothed_target_cells)
+            out["limit_target_l2"] = g.l2(smooth_limit - smoothed_cells)
         if rec.step % self.w2_every == 0 or last:
-            out["swarm_w2"] = swarm_w2(rec.positions, self.measure(rec.positions.shape[1]))
+            n = rec.positions.shape[1]
+            measure = self.measure(n) if not self.path.moves else self.measure_at(n, rec.t)
+            out["swarm_w2"] = swarm_w2(rec.positions, measure)
         return out
+
+    def measure_at(self, n_robots: int, t: float) -> TargetMeasure:
+        """The target measure of ``swarm_w2`` of ``p_*(t)`` (:meth:`measure` at ``t``;
+        computed at each evaluation).
+        """
+        refine = MEASURE_REFINE[w2_method(n_robots)]
+        return _target_measure(self.path.at(t), measure_grid(self.grid), refine)
 
     def initialize(self, run: RunContext) -> None:
         """Keep the run's context: the floors go into its theory record at the start."""

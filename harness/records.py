@@ -9,11 +9,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 from dataclasses import field as dc_field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 
 from harness.velocity import VelocityField, cap_vectors
+
+if TYPE_CHECKING:
+    from harness.densities import Target
 
 
 @dataclass(frozen=True)
@@ -122,12 +126,20 @@ class ControlInput:
             stands for them (the mean-field plant's state; the agents plant's limit
             ``p_inf``): a law of the positions evaluates its mean-field form on it.
             None with robots.
+        target: The target at ``t``, ``p_*(t)`` (a :class:`harness.densities.Target`),
+            when it moves (:mod:`harness.moving`); None for a static target (the law's
+            own). A law that follows a moving target uses it in place of its own
+            (:class:`harness.control.FieldLaw`).
+        target_rate: ``d_t p_*`` on the grid at ``t``, ``(ny, nx)`` (1 / (length^2 s)),
+            when the target moves, else None.
     """
 
     t: float
     estimate: Estimate
     positions: np.ndarray | None = None
     density: np.ndarray | None = None
+    target: Target | None = None
+    target_rate: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

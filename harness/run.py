@@ -229,7 +229,9 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest) -> RunResult:
     """
     rng = np.random.default_rng(exp.seed)
     steps = exp.steps
-    loop = ClosedLoop(exp.plant, exp.estimator, exp.control, exp.model, exp.dt, rng)
+    loop = ClosedLoop(
+        exp.plant, exp.estimator, exp.control, exp.model, exp.dt, rng, target=exp.target
+    )
     context = RunContext(out_dir)
     state, reason, done = "aborted", "", 0
     last: dict[str, float | None] = {}
