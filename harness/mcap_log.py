@@ -6,8 +6,9 @@ files apart from the provenance record.
 
 Topics (a topic that does not apply to the plant or estimator is absent):
 
-* ``/fields/p_target`` (once, at t = 0), ``/fields/p_true``, ``/fields/p_kde``,
-  ``/fields/p_hat``: ``foxglove.Grid`` with one float32 field ``p`` (1 / length^2);
+* ``/fields/p_target`` (at t = 0; for a moving target also ``p_*(t)`` at the field
+  rate), ``/fields/p_true``, ``/fields/p_kde``, ``/fields/p_hat``: ``foxglove.Grid``
+  with one float32 field ``p`` (1 / length^2);
 * ``/fields/<name>`` for each density field an estimator publishes
   (``Estimate.fields``, field ``p``, 1 / length^2): with ``estimator=distributed``
   ``/fields/p_hat`` is the robots' mean estimate, ``/fields/p_hat_central`` the
@@ -60,6 +61,7 @@ from harness.components import integer
 from harness.densities import Target
 from harness.grid import Grid
 from harness.identity import RunIdentity
+from harness.moving import TargetPath
 from harness.observers import RunContext, Status
 from harness.records import StepRecord
 
@@ -256,6 +258,7 @@ class McapLogger:
         positions_every: int,
     ) -> None:
         self.grid, self.target, self.identity = grid, target, identity
+        self._path = TargetPath(target)  # p_*(t) of a moving target, logged with the fields
         self.field_every = integer("field_every", field_every, 1)
         self.positions_every = integer("positions_every", positions_every, 1)
         self.total_steps = steps
@@ -377,6 +380,8 @@ class McapLogger:
                 self.write_grid("/fields/p_kde", t, rec.measurement.p)
                 self.write_grid("/fields/grad_kde", t, rec.measurement.grad)
             self.write_grid("/fields/p_hat", t, rec.estimate.p_hat)
+            if self._path.moves and rec.step > 0:
+                self.write_grid("/fields/p_target", t, self._path.at(t).p)
             self.write_grid("/fields/grad_hat", t, rec.estimate.q_hat)
             if rec.command.field is not None:
                 self.write_grid("/fields/velocity", t, rec.command.field.centres)

@@ -325,3 +325,15 @@ def test_robots_with_their_own_estimates_get_the_feedforward_too(rng):
     plain = PaperControl(path.start, alpha=0.003, sigma=5e-5)
     without = plain(ControlInput(t, est, positions, target=now, target_rate=dp)).robots
     assert not np.allclose(command.robots, without)
+
+
+def test_moving_target_is_logged_at_the_field_rate(tmp_path) -> None:
+    """`/fields/p_target` of a moving target: p_*(t) (float32) at every field step."""
+    log = api.run([*SHORT, "target=moving", "target.speed=0.05", "log.field_every=2"], tmp_path)
+    series = log.fields["/fields/p_target"]
+    exp = build(api.compose([*SHORT, "target=moving", "target.speed=0.05"]))
+    path = TargetPath(exp.target)
+    assert series.t.size > 2
+    for t, values in zip(series.t, series.values, strict=True):
+        np.testing.assert_allclose(values[0], path.at(float(t)).p, rtol=1e-6)
+    assert np.abs(series.values[-1] - series.values[0]).max() > 1e-3  # it does move

@@ -99,7 +99,7 @@ def test_observers_see_steps_in_order_and_finalise_in_reverse(compose, smoke, tm
     assert names[-2:] == [("last", "finalize"), ("first", "finalize")]
     # the first sees the step before any metric is in; the last sees them all
     handles = [c for c in calls if c[1] == "handle"]
-    assert handles == [("first", "handle", []), ("last", "handle", ["effort"])]
+    assert handles == [("first", "handle", []), ("last", "handle", ["command_age"])]
 
 
 def test_a_failing_finalize_does_not_stop_the_others(compose, smoke, tmp_path):
