@@ -60,14 +60,15 @@ reproduce: $(STAMP) ## Run the paper's experiment (100 s, N = 1024) and write it
 	@echo "log: $(RUN_DIR)/run.mcap"
 	@echo "figures:"; ls -1 figures/* figures/meanfield/*
 
-STUDIES := laws_n laws_iss heat_floor laws_noise conv_grid conv_sigma conv_alpha agents_n \
-	debias_n
+STUDIES := laws_n laws_iss heat_floor laws_noise robots link conv_grid conv_sigma conv_alpha \
+	agents_n
 # run alone (make sweep-NAME), beyond the sweeps' 30-minute budget: distributed_r
 # (decentralised loop against the communication radius, 28 min on 2 cores),
-# conv_grid_agents (grid refinement at the agent level, about 10 min) and iss_gain (the
+# conv_grid_agents (grid refinement at the agent level, about 10 min), iss_gain (the
 # paper's and the heat law's gain under smooth errors from the paper's start; the smooth
-# panel of laws_iss measures the same from p_*)
-EXTRA_STUDIES := distributed_r conv_grid_agents iss_gain
+# panel of laws_iss measures the same from p_*) and debias_n (the paper's loop against the
+# debiased loop up to N = 16384, about 12 min)
+EXTRA_STUDIES := distributed_r conv_grid_agents iss_gain debias_n
 
 sweeps: $(STAMP) ## Run the study presets (about 30 min on 2 cores) and write figures/sweeps/
 	@for s in $(STUDIES); do \
