@@ -37,6 +37,23 @@ REACHES = 1.5
 floor's mean (the settling criterion of :data:`analysis.sweep.SETTLING_FACTOR`)."""
 
 
+def _points(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:
+    """:func:`analysis.sweep.points`, each point holding every key of ``keys`` (a key
+    that does not vary across the sweep is not among the points' own: its single value
+    is copied in from the rows).
+    """
+    agg = sweep.points(rows)
+    for key in keys:
+        fixed = next((sweep.value(r, key) for r in rows if sweep.value(r, key) is not None), None)
+        for a in agg:
+            a.setdefault(key, fixed)
+    return agg
+
+
+LINK_KEYS = ("link.period", "link.latency", "link.loss")
+"""The link study's axes."""
+
+
 def _plant(a: dict[str, Any]) -> str:
     name = str(a.get("plant._target_", ""))
     return PLANT_NAMES.get(name, name.rsplit(".", 1)[-1])
@@ -46,7 +63,7 @@ def robots_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     """Bars per law and plant: ``swarm_ratio``, ``tracking_tail_mean``,
     ``settling_time`` (module docstring).
     """
-    agg = sweep.points(rows)
+    agg = _points(rows, ("plant._target_",))
     laws = _by_law(agg)
     plants = list(dict.fromkeys(PLANT_NAMES.values()))
     plants += sorted({_plant(a) for a in agg} - set(plants))
@@ -96,7 +113,7 @@ def robots_table(rows: list[dict[str, Any]]) -> str:
     """Markdown: per law and plant, ``swarm_l2`` over its floor, the tail tracking
     error (length / s) and the settling time (s); means with 95 % CIs.
     """
-    agg = sweep.points(rows)
+    agg = _points(rows, ("plant._target_",))
     lines = [
         "| law | plant | swarm_l2/floor | tracking error (length/s) | settling time (s) |",
         "|---|---|---|---|---|",
@@ -139,7 +156,7 @@ def link_boundary(rows: list[dict[str, Any]]) -> str:
     smallest period, and the cells (period, latency) where the loop stays within
     :data:`REACHES` times its floor (Markdown).
     """
-    agg = sweep.points(rows)
+    agg = _points(rows, LINK_KEYS)
     lines = [
         f"Loop within {REACHES} x its floor (tail swarm_l2 / floor), per loss:",
         "",
@@ -161,7 +178,7 @@ def link_boundary(rows: list[dict[str, Any]]) -> str:
 
 def link_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     """One panel per loss: ``swarm_ratio`` over period x latency (module docstring)."""
-    agg = sweep.points(rows)
+    agg = _points(rows, LINK_KEYS)
     losses = sorted({float(a["link.loss"]) for a in agg})
     values = np.array([a["swarm_ratio_mean"] for a in agg], dtype=float)
     finite = values[np.isfinite(values) & (values > 0)]
