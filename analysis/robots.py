@@ -151,10 +151,20 @@ def _link_grid(agg: list[dict[str, Any]], loss: float) -> tuple[np.ndarray, np.n
     return periods, latencies, ratio
 
 
+def _last_passing(axis: np.ndarray, ok: np.ndarray) -> float:
+    """The largest value of the ascending ``axis`` up to which every value passes
+    (``ok``); NaN when the first does not.
+    """
+    failing = np.flatnonzero(~ok)
+    last = (failing[0] if failing.size else axis.size) - 1
+    return float(axis[last]) if last >= 0 else math.nan
+
+
 def link_boundary(rows: list[dict[str, Any]]) -> str:
-    """Per loss probability: the largest period at latency 0, the largest latency at the
-    smallest period, and the cells (period, latency) where the loop stays within
-    :data:`REACHES` times its floor (Markdown).
+    """Per loss probability: the largest period at latency 0 up to which every period
+    passes, the largest latency at the smallest period up to which every latency passes,
+    and the cells (period, latency) where the loop stays within :data:`REACHES` times its
+    floor (Markdown).
     """
     agg = _points(rows, LINK_KEYS)
     lines = [
@@ -167,8 +177,8 @@ def link_boundary(rows: list[dict[str, Any]]) -> str:
     for loss in sorted({float(a["link.loss"]) for a in agg}):
         periods, latencies, ratio = _link_grid(agg, loss)
         ok = ratio <= REACHES
-        period = periods[ok[0]].max() if latencies[0] == 0 and ok[0].any() else math.nan
-        latency = latencies[ok[:, 0]].max() if ok[:, 0].any() else math.nan
+        period = _last_passing(periods, ok[0]) if latencies[0] == 0 else math.nan
+        latency = _last_passing(latencies, ok[:, 0])
         cells = ", ".join(
             f"({periods[j]:g}, {latencies[i]:g})" for i, j in zip(*np.nonzero(ok), strict=True)
         )

@@ -105,9 +105,9 @@ class Link:
         self._commands: dict[int, Command] = {}
         self._count: dict[int, int] = {-1: n}
         self.step = 0
-        self.sent = 0
-        self.delivered = 0
-        self.missed = 0
+        self.sent = 0  # broadcasts sent
+        self.delivered = 0  # deliveries attempted (robots x arrived broadcasts), lost ones included
+        self.missed = 0  # of those, lost
 
     def transmit(self, command: Command, step: int) -> None:
         """The law's command of step ``step``: broadcast it when the step is a

@@ -200,10 +200,8 @@ fixed64 fields 1 to 4) carry every value explicitly."""
 def poses_message(t: float, positions: np.ndarray, headings: np.ndarray) -> bytes:
     """A serialised ``foxglove.PosesInFrame`` of the robots: position ``(x, y, 0)``
     and the heading ``e(theta) = (cos theta, sin theta)`` (``headings``, ``(2, N)``) as
-    the rotation ``theta`` about z, quaternion ``(0, 0, sin(theta / 2), cos(theta /
-    2))`` with ``theta`` in ``(-pi, pi]``: ``cos(theta / 2) = sqrt((1 + cos theta) /
-    2)``, ``sin(theta / 2) = sign(sin theta) sqrt((1 - cos theta) / 2)`` (``+`` at
-    ``sin theta = 0``).
+    the rotation ``theta = atan2(sin theta, cos theta)`` (in ``[-pi, pi]``) about z,
+    quaternion ``(0, 0, sin(theta / 2), cos(theta / 2))``.
 
     The poses are written as packed records (:data:`POSE_RECORD`) after the serialised
     header (time, frame): protobuf parses concatenated messages as one, appending the
@@ -219,9 +217,8 @@ def poses_message(t: float, positions: np.ndarray, headings: np.ndarray) -> byte
     rec["x_tag"], rec["y_tag"], rec["z_tag"] = 0x09, 0x11, 0x19
     rec["qx_tag"], rec["qy_tag"], rec["qz_tag"], rec["qw_tag"] = 0x09, 0x11, 0x19, 0x21
     rec["x"], rec["y"] = positions[0], positions[1]
-    cos = np.clip(headings[0], -1.0, 1.0)
-    rec["qw"] = np.sqrt(0.5 * (1.0 + cos))
-    rec["qz"] = np.where(headings[1] < 0, -1.0, 1.0) * np.sqrt(0.5 * (1.0 - cos))
+    half = 0.5 * np.arctan2(headings[1], headings[0])
+    rec["qz"], rec["qw"] = np.sin(half), np.cos(half)
     return head.SerializeToString() + rec.tobytes()
 
 

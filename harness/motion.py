@@ -40,9 +40,10 @@ from harness.observers import RunContext, Status
 from harness.records import StepRecord
 
 MOTION_KEYS = ("effort", "mean_speed", "peak_speed")
-ROBOT_KEYS = ("tracking_error", "command_age")
-"""What the plant reports of the step just taken (module docstring)."""
 """The motion metrics, in log order."""
+
+ROBOT_KEYS = ("tracking_error", "command_age")
+"""What the plant reports of the step just taken (module docstring), in log order."""
 
 
 def speed_sums_reference(

@@ -176,9 +176,22 @@ class Agents:
 
     @classmethod
     def memory_estimate(cls, grid: Grid, n: int = 1, **params: object) -> MemoryEstimate:
-        """``BYTES_PER_ROBOT n`` plus the grid arrays (:func:`default_memory`)."""
+        """``BYTES_PER_ROBOT n`` plus the grid arrays (:func:`default_memory`), plus the
+        commands a link holds in flight: up to ``latency / period + 1`` copies of a
+        command (a velocity per robot, 16 bytes each, and a field of about 32 bytes per
+        cell), named by ``link.latency`` when they are most of it.
+        """
         robots = n if isinstance(n, int) and n > 0 else 1
-        return MemoryEstimate(cls.BYTES_PER_ROBOT * robots + default_memory(grid).nbytes, "n")
+        base = cls.BYTES_PER_ROBOT * robots + default_memory(grid).nbytes
+        period = params.get("link_period") or params.get("dt")
+        latency = params.get("link_latency") or 0.0
+        in_flight = 0.0
+        if isinstance(period, (int, float)) and isinstance(latency, (int, float)) and period > 0:
+            in_flight = latency / period + 1.0 if latency > 0 or period != params.get("dt") else 0.0
+        held = in_flight * (16.0 * robots + 32.0 * grid.size)
+        if not np.isfinite(held) or held > 1e18:
+            held = 1e18  # a latency no run reaches: refused as more than any machine has
+        return MemoryEstimate(int(base + held), "link_latency" if held > base else "n")
 
     @property
     def positions(self) -> np.ndarray | None:

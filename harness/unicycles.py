@@ -35,10 +35,11 @@ an end, or (``|sin psi| = 1``) where ``|psi|`` passes ``pi / 2``; when both are 
 
 (the point ahead moves by ``v dt``; the axle's deviation from ``v dt`` telescopes over
 the holds, so a unicycle that stays within its limits is never further than ``2 l``
-from where the point ahead puts it). Otherwise the hold is one arc of constant
-speeds: the turn rate ``omega = (psi_0 - psi_1) / dt`` (the one that reaches the law's
-heading) clipped to ``[-omega_max, omega_max]`` and the forward speed ``u =
-e(theta_0) . v`` clipped to ``[-v_max, v_max]``,
+from an ideal integrator fed the same velocities; at ``psi_0 = pi`` exactly the law
+rests, ``sin psi = 0``, and the robot backs up along ``v`` without turning). Otherwise
+the hold is one arc of constant speeds: the turn rate ``omega = (psi_0 - psi_1) /
+dt`` (the one that reaches the law's heading) clipped to ``[-omega_max, omega_max]``
+and the forward speed ``u = e(theta_0) . v`` clipped to ``[-v_max, v_max]``,
 
     X_1 = X_0 + u dt sinc(omega dt / 2) e(theta_0 + omega dt / 2),
     theta_1 = theta_0 + omega dt,
@@ -129,7 +130,10 @@ def unicycle_step_reference(
     # the heading error psi under the held v: tan(psi_1 / 2) = tan(psi_0 / 2) exp(-|v| dt / l)
     psi0 = np.arctan2(across, along)
     decay = np.exp(-np.hypot(v[0], v[1]) * dt / swarm.lookahead)
-    psi1 = 2.0 * np.arctan(np.tan(0.5 * psi0) * decay)
+    with np.errstate(invalid="ignore"):
+        psi1 = 2.0 * np.arctan(np.tan(0.5 * psi0) * decay)
+    psi1 = np.where(decay == 0.0, 0.0, psi1)  # aligned within the hold
+    psi1 = np.where((along < 0) & (across == 0), psi0, psi1)  # psi_0 = pi: the law's rest
     a0, a1 = np.abs(psi0), np.abs(psi1)
     top_cos = np.maximum(np.abs(np.cos(psi0)), np.abs(np.cos(psi1)))
     passes = (a1 <= 0.5 * np.pi) & (0.5 * np.pi <= a0)

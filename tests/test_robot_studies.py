@@ -42,6 +42,16 @@ def test_link_boundary_from_a_known_grid():
     assert "(4, 0.2)" not in cells[3]  # 1 + 0.8 + 0.4
 
 
+def test_link_boundary_stops_at_the_first_failure():
+    """A period that fails below one that passes ends the boundary there."""
+    ratios = {0.1: 1.0, 1.0: 2.0, 4.0: 1.2}
+    rows = [_link_row(p, 0.0, 0.0, r) for p, r in ratios.items()]
+    rows += [_link_row(p, 1.0, 0.0, 3.0) for p in ratios]
+    line = next(x for x in link_boundary(rows).splitlines() if x.startswith("| 0 |"))
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[1] == "0.1" and cells[2] == "0"
+
+
 def test_robots_table_orders_plants_and_gives_intervals():
     rows = [
         {

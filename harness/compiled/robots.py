@@ -94,7 +94,7 @@ def _unicycle_step(
         s = heading[1, k]
         along = c * vx + s * vy
         across = c * vy - s * vx
-        speed = math.sqrt(vx * vx + vy * vy)
+        speed = math.hypot(vx, vy)
         ell = lookahead[k]
         # cos and sin of psi_0 and psi_1 through tau = tan(psi / 2)
         if speed > 0.0:
@@ -106,6 +106,9 @@ def _unicycle_step(
         decay = math.exp(-speed * dt / ell)
         if c0 < 0.0 and s0 == 0.0:  # psi_0 = pi: the law's unstable rest, no turn
             c1 = -1.0
+            s1 = 0.0
+        elif decay == 0.0:  # aligned within the hold (tan(psi_0 / 2) may be inf)
+            c1 = 1.0
             s1 = 0.0
         else:
             # tan(psi_0 / 2) by the form without cancellation on each side of pi / 2

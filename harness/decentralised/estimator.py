@@ -294,8 +294,9 @@ class DistributedEstimator:
         )  # fmt: skip
 
     def check(self, plant: Plant, control: Control, **parts: object) -> None:
-        """Every robot estimates and moves on its own: refuse a plant without robots and
-        a law that does not move each robot by its own estimate.
+        """Every robot estimates and moves on its own: refuse a plant without robots, a
+        law that does not move each robot by its own estimate, and a command link that is
+        not ideal (it models a broadcast from a central law, :mod:`harness.link`).
         """
         if not plant.has_robots:
             raise Incompatible(
@@ -309,6 +310,18 @@ class DistributedEstimator:
                 "control", type(control).__name__,
                 "a law that moves each robot by the law of its own estimate (a FieldLaw "
                 "with its own at_cells, harness.control) for estimator=distributed",
+            )  # fmt: skip
+        link = getattr(plant, "link", None)
+        if link is not None and not link.ideal:
+            key, value = (
+                ("link.loss", link.loss) if link.loss
+                else ("link.latency", link.latency_steps * link.dt) if link.latency_steps
+                else ("link.period", link.period_steps * link.dt)
+            )  # fmt: skip
+            raise Incompatible(
+                key, value,
+                "the ideal link with estimator=distributed: each robot computes its own "
+                "command on board, and the link models a broadcast from a central law",
             )  # fmt: skip
 
     def initialize(self, inp: StepInput) -> Estimate:
