@@ -174,3 +174,91 @@ def test_bad_robot_parameters_are_refused_in_one_line(refusal, override) -> None
     message = refusal([*BASE, "plant=unicycles", override])
     assert message is not None and "\n" not in message
     assert override.split("=")[0] in message
+
+
+def _rk4_unicycle(swarm: UnicycleSwarm, v: np.ndarray, dt: float, substeps: int = 4000):
+    """The feedback-linearising law under a held ``v`` integrated by RK4 (no limits, no
+    noise), with the largest ``|u|`` and ``|omega|`` met on the way."""
+    ell = swarm.lookahead
+    x = swarm.positions.copy()
+    th = np.arctan2(swarm.headings[1], swarm.headings[0])
+    h = dt / substeps
+
+    def f(x, th):
+        c, s = np.cos(th), np.sin(th)
+        u = c * v[0] + s * v[1]
+        w = (c * v[1] - s * v[0]) / ell
+        return np.array([u * c, u * s]), w, u
+
+    top_u, top_w = np.zeros(x.shape[1]), np.zeros(x.shape[1])
+    for _ in range(substeps):
+        k1, m1, u = f(x, th)
+        top_u, top_w = np.maximum(top_u, np.abs(u)), np.maximum(top_w, np.abs(m1))
+        k2, m2, _ = f(x + 0.5 * h * k1, th + 0.5 * h * m1)
+        k3, m3, _ = f(x + 0.5 * h * k2, th + 0.5 * h * m2)
+        k4, m4, _ = f(x + h * k3, th + h * m3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        th = th + h / 6 * (m1 + 2 * m2 + 2 * m3 + m4)
+    _, w_end, u_end = f(x, th)
+    top_u, top_w = np.maximum(top_u, np.abs(u_end)), np.maximum(top_w, np.abs(w_end))
+    return x, th, top_u, top_w
+
+
+def test_unicycle_hold_against_an_independent_integration():
+    """Against RK4 of the continuous law: robots whose law stays within the limits over
+    the hold end where RK4 puts them (1e-9); robots whose law exceeds a limit take the
+    clipped arc instead, turning at most omega_max dt and travelling at most v_max dt."""
+    rng = np.random.default_rng(5)
+    n, dt, v_max, omega_max = 600, 0.01, 0.2, 8.0
+    swarm = _uni(rng, n, v_max=v_max, omega_max=omega_max, ell=0.02)
+    swarm.sigma = 0.0
+    # look-aheads from slow turning to swinging from behind to ahead within the hold
+    swarm.lookahead[:] = 10 ** rng.uniform(-5, -1, n)
+    speed = rng.uniform(0.0, 0.3, n)
+    angle = rng.uniform(-np.pi, np.pi, n)
+    # a third start almost opposite their command with a look-ahead that swings them
+    # round within the hold: small turn rates at both ends, |v| / l in between
+    behind = np.arange(n) % 3 == 0
+    th = np.arctan2(swarm.headings[1], swarm.headings[0])
+    angle[behind] = th[behind] + np.pi - rng.uniform(1e-4, 5e-3, behind.sum())
+    swarm.lookahead[behind] = speed[behind] * dt / rng.uniform(10, 40, behind.sum())
+    v = speed * np.array([np.cos(angle), np.sin(angle)])
+    x_ref, th_ref, top_u, top_w = _rk4_unicycle(swarm, v, dt)
+    before = swarm.positions.copy()
+    th0 = np.arctan2(swarm.headings[1], swarm.headings[0])
+    swarm.move(v, dt, np.random.default_rng(0))
+    th1 = np.arctan2(swarm.headings[1], swarm.headings[0])
+    within = (top_u < 0.99 * v_max) & (top_w < 0.99 * omega_max)
+    beyond = (top_u > 1.01 * v_max) | (top_w > 1.01 * omega_max)
+    assert within.sum() > 50 and beyond.sum() > 50  # both branches are exercised
+    np.testing.assert_allclose(swarm.positions[:, within], x_ref[:, within], atol=1e-9)
+    turn_ref = np.angle(np.exp(1j * (th_ref - th0)))
+    turn = np.angle(np.exp(1j * (th1 - th0)))
+    np.testing.assert_allclose(turn[within], turn_ref[within], atol=1e-9)
+    assert np.all(np.abs(turn[beyond]) <= omega_max * dt * (1 + 1e-12))
+    travel = np.hypot(*(swarm.positions - before))
+    assert np.all(travel[beyond] <= v_max * dt * (1 + 1e-12))
+    assert np.all(np.abs(turn[beyond] - turn_ref[beyond]) + np.hypot(
+        *(swarm.positions - x_ref))[beyond] > 1e-9)  # fmt: skip
+
+
+def test_unicycle_step_edge_cases_are_finite_and_match_the_reference():
+    """Zero command, a command exactly behind the robot, a look-ahead so small that the
+    heading's decay underflows, and a huge command: compiled and numpy agree, all
+    finite."""
+    heading = np.array([0.0, np.pi, 0.3, 2.0, 0.0])
+    v = np.array([[0.0, 0.05, 0.05, 1e200, 0.05], [0.0, 0.0, 1e-300, 1e200, 1e-310]])
+    ell = np.array([0.01, 0.01, 1e-300, 0.01, 1e-9])
+
+    def make():
+        pos = np.full((2, 5), 0.5)
+        return UnicycleSwarm(GRID, pos, 0.0, heading, np.full(5, 1e300), np.full(5, 1e300), ell)
+
+    a, b = make(), make()
+    fast = a.move(v, 0.01, np.random.default_rng(0)).copy()
+    slow = unicycle_step_reference(b, v, 0.01, np.random.default_rng(0))
+    assert np.isfinite(fast).all() and np.isfinite(a.headings).all()
+    np.testing.assert_allclose(fast, slow, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(a.headings, b.headings, atol=1e-12)
+    np.testing.assert_array_equal(fast[:, 0], 0.0)  # no command: no motion
+    np.testing.assert_allclose(a.headings[:, 1], [-1.0, 0.0], atol=1e-15)  # backs up
