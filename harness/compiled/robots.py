@@ -87,6 +87,7 @@ def _unicycle_step(
     turned by ``psi_0 - psi_1``; only the arc at a limit takes angles.
     """
     n = pos.shape[1]
+    inv_dt = 1.0 / dt
     for k in numba.prange(n):
         vx = v[0, k]
         vy = v[1, k]
@@ -94,12 +95,14 @@ def _unicycle_step(
         s = heading[1, k]
         along = c * vx + s * vy
         across = c * vy - s * vx
-        speed = math.hypot(vx, vy)
+        square = vx * vx + vy * vy
+        speed = math.sqrt(square) if square < 1e300 else math.hypot(vx, vy)
         ell = lookahead[k]
         # cos and sin of psi_0 and psi_1 through tau = tan(psi / 2)
         if speed > 0.0:
-            c0 = along / speed
-            s0 = across / speed
+            inv_speed = 1.0 / speed
+            c0 = along * inv_speed
+            s0 = across * inv_speed
         else:
             c0 = 1.0
             s0 = 0.0
@@ -116,13 +119,15 @@ def _unicycle_step(
             tau *= decay
             if abs(tau) <= 1.0:
                 q = tau * tau
-                c1 = (1.0 - q) / (1.0 + q)
-                s1 = 2.0 * tau / (1.0 + q)
+                r = 1.0 / (1.0 + q)
+                c1 = (1.0 - q) * r
+                s1 = 2.0 * tau * r
             else:
                 w = 1.0 / tau
                 q = w * w
-                c1 = (q - 1.0) / (q + 1.0)
-                s1 = 2.0 * w / (q + 1.0)
+                r = 1.0 / (q + 1.0)
+                c1 = (q - 1.0) * r
+                s1 = 2.0 * w * r
         top_cos = max(abs(c0), abs(c1))
         top_sin = 1.0 if c1 >= 0.0 >= c0 else max(abs(s0), abs(s1))
         # the turn psi_0 - psi_1 as a rotation
@@ -136,7 +141,7 @@ def _unicycle_step(
             ddy = vy * dt + ell * (s - ns)
         else:
             # at a limit: one arc of the clipped (u, omega)
-            omega = min(max(math.atan2(rs, rc) / dt, -omega_max[k]), omega_max[k])
+            omega = min(max(math.atan2(rs, rc) * inv_dt, -omega_max[k]), omega_max[k])
             u = min(max(along, -v_max[k]), v_max[k])
             half = 0.5 * omega * dt
             sinc = math.sin(half) / half if abs(half) > 1e-6 else 1.0 - half * half / 6.0
@@ -148,11 +153,13 @@ def _unicycle_step(
             ts = 2.0 * hs * hc
             nc = c * tc - s * ts
             ns = s * tc + c * ts
-        norm = math.sqrt(nc * nc + ns * ns)
-        heading[0, k] = nc / norm
-        heading[1, k] = ns / norm
-        applied[0, k] = ddx / dt
-        applied[1, k] = ddy / dt
+        # back onto the unit circle (one Newton step of 1 / sqrt: the rotation left it
+        # within round-off)
+        fix = 1.5 - 0.5 * (nc * nc + ns * ns)
+        heading[0, k] = nc * fix
+        heading[1, k] = ns * fix
+        applied[0, k] = ddx * inv_dt
+        applied[1, k] = ddy * inv_dt
         px = pos[0, k] + ddx + noise[0, k] * scale
         py = pos[1, k] + ddy + noise[1, k] * scale
         if px < x0:
