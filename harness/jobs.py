@@ -33,6 +33,7 @@ system or holding a path separator is shortened and made unique with a hash.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import csv
 import hashlib
@@ -373,29 +374,117 @@ def checked(cfg: DictConfig) -> DictConfig | Experiment:
 
 
 class CheckCallback(Callback):
-    """Checks a single run's config (by building it), that its directory holds no log
-    yet and that the disk has room for the log, before Hydra creates the output
-    directory; a refused value prints its one line and exits with status 2. The build
-    is handed on to the run (:func:`checked`).
+    """Checks a single run's config (by building it), that its directory can be created
+    and holds no log yet, that no other run is using it, and that the disk has room for
+    the log, before Hydra writes anything into it; a refused value (or anything else
+    this check raises) prints its one line and exits with status 2. The build is
+    handed on to the run (:func:`checked`), and the directory stays claimed
+    (:func:`claim_run_dir`) until the process ends.
     """
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Build the run to check it; nothing is written."""
+        """Build the run to check it, then claim its directory."""
         _CHECKED.clear()
         try:
             parts = build(config)
             out = Path(str(config.hydra.run.dir))
-            if (out / LOG_FILE).exists():
+            check_dir_name("hydra.run.dir", out)
+            if (out / LOG_FILE).exists() or (out / LOG_FILE).is_symlink():
                 raise ConfigError(
                     "hydra.run.dir",
                     str(out),
                     "a directory without a run.mcap (it holds one already: not overwritten)",
                 )
             check_disk(parts.disk, out)
+            claim_run_dir(out)
         except ConfigError as err:
             print(err, file=sys.stderr)
             sys.exit(2)
+        except Exception as err:  # Hydra would turn it into a warning and run on
+            print(f"cannot start: {one_line(err)}", file=sys.stderr)
+            sys.exit(2)
         _CHECKED[config_hash(config)] = parts
+
+
+def one_line(err: BaseException) -> str:
+    """``Type: first line of the message`` of an exception."""
+    text = (str(err).strip().splitlines() or [""])[0]
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def check_dir_name(key: str, path: Path) -> None:
+    """Refuse a directory path with a name too long for a file system (255 bytes) or a
+    NUL byte, before anything is created.
+
+    Raises:
+        ConfigError: naming ``key``.
+    """
+    for part in Path(path).parts:
+        if "\0" in part or len(part.encode(errors="surrogateescape")) > 255:
+            raise ConfigError(
+                key, str(path)[:80] + "...", "a path whose names are at most 255 bytes"
+            )
+
+
+RUN_LOCK = ".run.lock"
+"""The file (holding the process id) by which a single run claims its directory."""
+
+
+def claim_run_dir(out: Path) -> None:
+    """Create ``out`` and claim it for this process: ``.run.lock`` created exclusively
+    (a lock left by a process that is gone is taken over) and removed when the process
+    ends; the run's log is created exclusively too (:class:`harness.run.run`).
+
+    Raises:
+        ConfigError: for a directory that cannot be created or written (a path under a
+            file, a read-only file system, ``/dev/null``), or one another running
+            process has claimed.
+    """
+    lock = out / RUN_LOCK
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if not out.is_dir():
+            raise NotADirectoryError(20, "not a directory", str(out))
+        while True:
+            try:
+                fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                break
+            except FileExistsError:
+                holder = _lock_holder(lock)
+                if holder and holder != os.getpid() and _alive(holder):
+                    raise ConfigError(
+                        "hydra.run.dir",
+                        str(out),
+                        f"a directory no other run is using (process {holder} runs there)",
+                    ) from None
+                with contextlib.suppress(FileNotFoundError):
+                    lock.unlink()  # stale: its process is gone
+        try:
+            os.write(fd, str(os.getpid()).encode())
+        finally:
+            os.close(fd)
+    except OSError as err:
+        raise ConfigError(
+            "hydra.run.dir",
+            str(out),
+            f"a directory that can be created and written ({err.strerror})",
+        ) from None
+    atexit.register(_release, lock, os.getpid())
+
+
+def _lock_holder(lock: Path) -> int:
+    """The process id in a lock file (0 when unreadable)."""
+    try:
+        return int(lock.read_text().strip() or "0")
+    except (OSError, ValueError):
+        return 0
+
+
+def _release(lock: Path, pid: int) -> None:
+    """Remove ``lock`` if process ``pid`` (this one, not a forked child) holds it."""
+    if os.getpid() == pid and _lock_holder(lock) == pid:
+        with contextlib.suppress(OSError):
+            lock.unlink()
 
 
 @contextlib.contextmanager
