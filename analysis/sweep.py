@@ -282,6 +282,28 @@ def mixed(rows: list[dict[str, Any]], primary: list[str]) -> list[str]:
     return out
 
 
+def code_of(provenance: dict[str, str]) -> str:
+    """The code a log was made by, from its ``provenance`` record: ``code_sha256`` (the
+    commit, the diff's hash and the package versions), else the commit with ``+dirty``
+    (logs from before the hash was recorded), else ``unknown``.
+    """
+    if provenance.get("code_sha256"):
+        return str(provenance["code_sha256"])[:12]
+    commit = str(provenance.get("git_commit", "unknown"))[:12]
+    return commit + ("+dirty" if provenance.get("git_dirty") == "true" else "")
+
+
+def mixed_code(rows: list[dict[str, Any]]) -> dict[str, int]:
+    """The codes (:func:`code_of`) of the rows with their job counts, when more than one
+    made them (empty otherwise): such logs are not one study.
+    """
+    counts: dict[str, int] = {}
+    for r in rows:
+        if "code" in r:
+            counts[r["code"]] = counts.get(r["code"], 0) + 1
+    return counts if len(counts) > 1 else {}
+
+
 def analyse(
     sweep_dir: Path, tail: float | None = None
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
@@ -312,6 +334,7 @@ def analyse(
             warnings.warn(f"{log_path}: {run.recovery}", SweepWarning, stacklevel=2)
         flat = flatten(logged_config(run))
         row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
+        row["code"] = code_of(run.metadata.get("provenance", {}))
         row["law"] = component(flat, "control")
         theory = run.metadata.get("theory", {})
         row["law_uses"] = theory.get("law_uses", "")
@@ -848,6 +871,11 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help=f"tail fraction of each run (default: the declared one, else {DEFAULT_TAIL})",
     )
+    parser.add_argument(
+        "--mixed-code",
+        action="store_true",
+        help="pool logs made by different code (commit, local changes, package versions)",
+    )
     args = parser.parse_args(argv)
     if not args.sweep_dir.is_dir():
         print(f"error: no sweep directory at {args.sweep_dir}", file=sys.stderr)
@@ -871,6 +899,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if not rows:
         print(f"error: no run.mcap below {args.sweep_dir}", file=sys.stderr)
+        return 2
+    codes = mixed_code(rows)
+    if codes and not args.mixed_code:
+        print(
+            f"error: {args.sweep_dir}: the logs were made by different code ("
+            + ", ".join(f"{c}: {n} jobs" for c, n in sorted(codes.items()))
+            + "; rerun the sweep into the same directory to bring every job to the same "
+            "code, or pass --mixed-code)",
+            file=sys.stderr,
+        )
         return 2
     keys = varied(rows)
     usable = [r for r in rows if "phi_tail_sup" in r]

@@ -6,8 +6,11 @@ Hydra cannot resume a sweep. Each job of a multirun therefore
 * skips itself only when its directory holds a ``run.mcap`` that is complete, reads
   back whole (chunk CRCs checked, the message count equal to the summary's), has
   status ``completed``, and whose ``provenance`` record's ``config_sha256`` equals the
-  hash of the job's resolved config (:func:`config_hash`); otherwise it runs again and its
-  ``job_status.json`` says why (``rerun_reason``). A complete log of another config is
+  hash of the job's resolved config (:func:`config_hash`) and its ``code_sha256`` the
+  code's (:func:`~harness.identity.code_identity`: commit, the diff's hash, package
+  versions); otherwise it runs again and its ``job_status.json`` and the table say why
+  (``rerun_reason``). A log is replaced only when it is a verified copy of what the
+  rerun writes (same config and code, unfinished or not ``completed``); any other is
   moved aside (``run.previous-K.mcap``), never overwritten;
 * runs in a process of its own (forked from the launcher's worker, which only waits),
   so a job killed by the kernel's out-of-memory killer or by hand costs only itself:
@@ -45,7 +48,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +61,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from harness.build import Experiment, build
 from harness.checks import ConfigError, check_disk
-from harness.identity import config_hash
+from harness.identity import code_change, code_identity, config_hash
 from harness.mcap_log import LOG_FILE
 from harness.run import RunResult, Terminated, run
 
@@ -93,8 +96,8 @@ class LogCheck:
     """What :func:`verify_log` found: ``complete`` (a summary and a footer), ``intact``
     (every record read back with valid CRCs and the summary's message count),
     ``state`` (of the status record), ``config_hash`` (``config_sha256`` of the
-    provenance record) and ``problem``
-    (why it cannot be trusted, empty when it can).
+    provenance record), ``problem`` (why it cannot be trusted, empty when it can) and
+    ``provenance`` (the record, empty when not read).
     """
 
     complete: bool
@@ -102,6 +105,7 @@ class LogCheck:
     state: str | None
     config_hash: str | None
     problem: str
+    provenance: dict[str, str] = field(default_factory=dict)
 
 
 def verify_log(path: Path) -> LogCheck:
@@ -110,15 +114,21 @@ def verify_log(path: Path) -> LogCheck:
     """
     if not path.is_file():
         return LogCheck(False, False, None, None, "no log")
+    prov: dict[str, str]
     try:
         with open(path, "rb") as f:
             summary = make_reader(f).get_summary()
     except Exception as err:
-        return LogCheck(False, False, None, None, f"unfinished or unreadable ({err})")
+        prov = _scan_provenance(path)
+        problem = f"unfinished or unreadable ({err})"
+        return LogCheck(False, False, None, prov.get("config_sha256"), problem, prov)
     if summary is None or summary.statistics is None:
-        return LogCheck(False, False, None, None, "unfinished (no summary)")
+        prov = _scan_provenance(path)
+        problem = "unfinished (no summary)"
+        return LogCheck(False, False, None, prov.get("config_sha256"), problem, prov)
     expected = summary.statistics.message_count
     state, digest, count = None, None, 0
+    prov = {}
     try:
         with open(path, "rb") as f:
             for record in StreamReader(f, validate_crcs=True, record_size_limit=1 << 30).records:
@@ -127,13 +137,29 @@ def verify_log(path: Path) -> LogCheck:
                 elif isinstance(record, Metadata) and record.name == "status":
                     state = record.metadata.get("state")
                 elif isinstance(record, Metadata) and record.name == "provenance":
-                    digest = record.metadata.get("config_sha256")
+                    prov = dict(record.metadata)
+                    digest = prov.get("config_sha256")
     except Exception as err:
-        return LogCheck(True, False, state, digest, f"damaged ({type(err).__name__}: {err})")
+        problem = f"damaged ({type(err).__name__}: {err})"
+        return LogCheck(True, False, state, digest, problem, prov)
     if count != expected:
         problem = f"damaged ({count} messages read, the summary says {expected})"
-        return LogCheck(True, False, state, digest, problem)
-    return LogCheck(True, True, state, digest, "")
+        return LogCheck(True, False, state, digest, problem, prov)
+    return LogCheck(True, True, state, digest, "", prov)
+
+
+def _scan_provenance(path: Path) -> dict[str, str]:
+    """The ``provenance`` record of a log read from its start as far as it reads (an
+    unfinished log has it near its start); empty when not found.
+    """
+    try:
+        with open(path, "rb") as f:
+            for record in StreamReader(f, validate_crcs=True, record_size_limit=1 << 30).records:
+                if isinstance(record, Metadata) and record.name == "provenance":
+                    return dict(record.metadata)
+    except Exception:  # unfinished or damaged from here on
+        pass
+    return {}
 
 
 def log_state(path: Path) -> str | None:
@@ -181,9 +207,9 @@ def _number(x: Any) -> float:
 
 def collect(sweep_dir: Path) -> list[dict[str, Any]]:
     """One row per job directory below ``sweep_dir`` (job, dir, overrides, state, runs,
-    wall_s, reason). A job still marked ``running`` when the sweep is over was killed;
-    a log whose status disagrees with the job's file wins; malformed status files are
-    read as far as they make sense.
+    wall_s, reason, rerun_reason: why its last run was not skipped). A job still marked
+    ``running`` when the sweep is over was killed; a log whose status disagrees with the
+    job's file wins; malformed status files are read as far as they make sense.
     """
     rows = []
     dirs = {p.parent for p in sweep_dir.glob(f"*/{STATUS_FILE}")}
@@ -213,6 +239,7 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
                 "runs": _int(status.get("runs"), 0),
                 "wall_s": _number(status.get("wall_s")),
                 "reason": reason,
+                "rerun_reason": str(status.get("rerun_reason", "") or ""),
             }
         )
     rows.sort(key=lambda r: (_int(r["job"], -1) % (10**9 + 1), str(r["dir"])))
@@ -222,16 +249,19 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
 def format_table(rows: list[dict[str, Any]]) -> str:
     """Markdown table of the rows."""
     lines = [
-        "| job | overrides | state | runs | wall time (s) | reason |",
-        "|---|---|---|---|---|---|",
+        "| job | overrides | state | runs | wall time (s) | reason | rerun because |",
+        "|---|---|---|---|---|---|---|",
     ]
+
+    def cell(text: Any) -> str:
+        return str(text or "").replace("|", "/").replace("\n", " ")[:200]
+
     for r in rows:
         wall = r["wall_s"]
         wall_text = f"{wall:.1f}" if isinstance(wall, (int, float)) else str(wall)
-        reason = str(r.get("reason", "")).replace("|", "/").replace("\n", " ")[:200]
         lines.append(
             f"| {r['job']} | {r['overrides']} | {r['state']} | {r['runs']} | {wall_text} "
-            f"| {reason} |"
+            f"| {cell(r.get('reason'))} | {cell(r.get('rerun_reason'))} |"
         )
     return "\n".join(lines)
 
@@ -241,7 +271,18 @@ def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
     sweep_dir.mkdir(parents=True, exist_ok=True)
     with open(sweep_dir / "sweep_status.csv", "w", newline="") as f:
         writer = csv.DictWriter(
-            f, fieldnames=["job", "dir", "overrides", "state", "runs", "wall_s", "reason"]
+            f,
+            fieldnames=[
+                "job",
+                "dir",
+                "overrides",
+                "state",
+                "runs",
+                "wall_s",
+                "reason",
+                "rerun_reason",
+            ],
+            extrasaction="ignore",
         )
         writer.writeheader()
         writer.writerows(rows)
@@ -541,7 +582,7 @@ def _child(out: Path) -> None:
     # one core per job: the sweep runs a job per core, so the compiled loops stay serial
     numba.set_num_threads(1)
     try:
-        result = run(_PENDING.pop(), out, overwrite=True)
+        result = run(_PENDING.pop(), out)
     except (KeyboardInterrupt, Terminated) as err:
         write_status(out, state="aborted", reason=f"interrupted: {err}".strip(), pid=0)
         os._exit(3)
@@ -590,18 +631,23 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
     """
     out.mkdir(parents=True, exist_ok=True)
     digest = config_hash(cfg)
+    now_code = code_identity()
     ident = {"job": job, "overrides": overrides, "config_sha256": digest}
     with _claim(out):
         log = out / LOG_FILE
         check = verify_log(log)
-        if check.intact and check.state == "completed" and check.config_hash == digest:
-            write_status(out, state="completed", reason="", **ident)
+        same_config = check.config_hash == digest
+        changed = code_change(check.provenance, now_code) if check.provenance else ""
+        if check.intact and check.state == "completed" and same_config and not changed:
+            write_status(out, state="completed", reason="", rerun_reason="", **ident)
             print(f"job {job}: already completed, skipped ({out})")
             return None
         if not check.intact:
             why = check.problem
-        elif check.config_hash != digest:
+        elif not same_config:
             why = "the log holds another config"
+        elif changed:
+            why = changed
         else:
             why = f"the log's status is {check.state}"
         try:
@@ -610,9 +656,12 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
             print(err, file=sys.stderr)
             write_status(out, state="invalid", reason=str(err), pid=0, **ident)
             return None
-        if check.complete and check.state == "completed":
-            moved = _set_aside(log)  # a complete log is never overwritten
-            why += f" (kept as {moved.name})"
+        if log.exists() or log.is_symlink():
+            if same_config and not changed and check.provenance and check.state != "completed":
+                log.unlink()  # a verified copy, unfinished: the rerun writes it whole
+            else:
+                moved = _set_aside(log)  # anything else is never overwritten
+                why += f" (kept as {moved.name})"
         runs = _int(read_status(out).get("runs"), 0) + 1
         write_status(out, state="running", runs=runs, reason="", rerun_reason=why, pid=0, **ident)
         try:
@@ -621,7 +670,7 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
             print(f"job {job}: cannot fork ({err}); running in the worker", file=sys.stderr)
             code = 0
             try:
-                result = run(_PENDING.pop(), out, overwrite=True)
+                result = run(_PENDING.pop(), out)
                 write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
             except Exception as err2:
                 write_status(out, state="aborted", reason=f"{type(err2).__name__}: {err2}")

@@ -101,3 +101,63 @@ def test_a_run_between_its_check_and_its_log_keeps_its_directory(tmp_path, compo
     # and released by a run that ends normally
     assert cli(*SMALL, f"hydra.run.dir={out}").returncode == 0
     assert (out / "run.mcap").exists() and not (out / ".run.lock").exists()
+
+
+# ------------------------------------------------------------ 2. resume sees code changes
+def test_sweep_resumed_after_a_code_change_reruns_every_job_whose_code_differs(
+    tmp_path, compose, monkeypatch, capsys
+):
+    import json
+
+    from analysis import sweep
+    from harness import identity
+    from harness.jobs import run_job
+
+    repo = tmp_path / "code"
+    repo.mkdir()
+    (repo / "law.py").write_text("ALPHA = 1\n")
+    git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], check=True)
+    subprocess.run([*git, "add", "law.py"], check=True)
+    subprocess.run([*git, "commit", "-qm", "one"], check=True)
+    monkeypatch.setattr(identity, "ROOT", repo)  # the code under git is this repository
+    jobs = {"a": compose(SMALL), "b": compose([*SMALL, "seed=3"])}
+    sweep_dir = tmp_path / "sweep"
+
+    def resume():
+        for k, (name, cfg) in enumerate(jobs.items()):
+            run_job(cfg, sweep_dir / name, k, [name])
+        return {n: json.loads((sweep_dir / n / "job_status.json").read_text()) for n in jobs}
+
+    assert {n: s["runs"] for n, s in resume().items()} == {"a": 1, "b": 1}
+    assert {n: s["runs"] for n, s in resume().items()} == {"a": 1, "b": 1}  # same code
+    (repo / "law.py").write_text("ALPHA = 2\n")  # an edit, not committed
+    before = (sweep_dir / "a" / "run.mcap").read_bytes()
+    status = resume()
+    assert {n: s["runs"] for n, s in status.items()} == {"a": 2, "b": 2}
+    assert all("git_diff_sha256" in s["rerun_reason"] for s in status.values())
+    assert (sweep_dir / "a" / "run.previous-1.mcap").read_bytes() == before
+    # a log of the old code beside the new ones is not pooled into one study
+    (sweep_dir / "a" / "run.mcap").replace(sweep_dir / "a" / "run.new.mcap")
+    (sweep_dir / "a" / "run.previous-1.mcap").replace(sweep_dir / "a" / "run.mcap")
+    capsys.readouterr()
+    assert sweep.main([str(sweep_dir)]) == 2
+    assert "different code" in capsys.readouterr().err
+
+
+def test_resume_never_overwrites_an_unfinished_log_of_another_config(tmp_path, compose):
+    import json
+
+    from harness.jobs import run_job
+
+    out = tmp_path / "job"
+    other = compose([*SMALL, "seed=9"])
+    assert run(other, out).state == "completed"
+    data = (out / "run.mcap").read_bytes()
+    (out / "run.mcap").write_bytes(data[: len(data) // 2])  # killed mid-run
+    run_job(compose(SMALL), out, 0, SMALL)
+    status = json.loads((out / "job_status.json").read_text())
+    assert (
+        status["state"] == "completed" and "kept as run.previous-1.mcap" in status["rerun_reason"]
+    )
+    assert (out / "run.previous-1.mcap").read_bytes() == data[: len(data) // 2]
