@@ -40,6 +40,7 @@ import atexit
 import contextlib
 import csv
 import hashlib
+import io
 import json
 import multiprocessing
 import os
@@ -166,17 +167,25 @@ def log_state(path: Path) -> str | None:
     """The ``status`` record's state of a finished log, None when the file is missing,
     unfinished (no summary) or unreadable. Reads only the summary section.
     """
+    return log_status(path)[0]
+
+
+def log_status(path: Path) -> tuple[str | None, str]:
+    """The ``status`` record's state and reason of a finished log; ``(None, "")`` when
+    the file is missing, not a regular file, unfinished (no summary) or unreadable.
+    Reads only the summary section.
+    """
     if not path.is_file():
-        return None
+        return None, ""
     try:
         with open(path, "rb") as f:
             reader = make_reader(f)
             for record in reader.iter_metadata():
                 if record.name == "status":
-                    return record.metadata.get("state")
+                    return record.metadata.get("state"), record.metadata.get("reason", "")
     except Exception:  # unfinished or damaged: not completed
-        return None
-    return None
+        return None, ""
+    return None, ""
 
 
 def read_status(job_dir: Path) -> dict[str, Any]:
@@ -188,13 +197,54 @@ def read_status(job_dir: Path) -> dict[str, Any]:
         return {}
 
 
-def write_status(job_dir: Path, **fields: Any) -> None:
-    """Merge ``fields`` into the job's ``job_status.json`` (atomic replace)."""
+STATUS_BYTES = 4096
+"""Size a ``job_status.json`` is padded to (trailing blanks, which JSON ignores), so a
+later status fits in the blocks it holds when the disk is full."""
+
+
+def write_status(job_dir: Path, **fields: Any) -> bool:
+    """Merge ``fields`` into the job's ``job_status.json``: an atomic replace, or, when
+    the disk is full, a rewrite in place of the blocks the file already holds (it is
+    padded to :data:`STATUS_BYTES`). Never raises: a status that cannot be written at
+    all is said in one line on standard error.
+
+    Returns:
+        Whether the status was written.
+    """
     data = read_status(job_dir)
     data.update(fields)
-    tmp = job_dir / f"{STATUS_FILE}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
-    tmp.replace(job_dir / STATUS_FILE)
+    text = json.dumps(data, indent=1, sort_keys=True, default=str).encode()
+    return write_file(job_dir / STATUS_FILE, text.ljust(STATUS_BYTES) + b"\n", "job status")
+
+
+def write_file(path: Path, data: bytes, what: str) -> bool:
+    """Write ``data`` to ``path`` atomically (a temporary file replaces it), else, when
+    that fails (a full disk), over the old file in place if ``data`` fits in it (padded
+    with blanks); never leaves a temporary file and never raises: a file that cannot be
+    written is said in one line on standard error.
+
+    Returns:
+        Whether the file holds ``data``.
+    """
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_bytes(data)
+        tmp.replace(path)
+        return True
+    except OSError as err:
+        first = err
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+    try:
+        size = path.stat().st_size
+        if len(data) <= size:
+            with open(path, "r+b") as f:
+                f.write(data.rstrip().ljust(size - 1) + b"\n")
+            return True
+    except OSError:
+        pass
+    print(f"cannot write the {what} {path}: {first.strerror or first}", file=sys.stderr)
+    return False
 
 
 def _int(x: Any, default: int) -> int:
@@ -220,11 +270,18 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
         reason = str(status.get("reason", "") or "")
         if not status:
             reason = "job_status.json missing or unreadable"
-        logged = log_state(job_dir / LOG_FILE)
+        logged, logged_reason = log_status(job_dir / LOG_FILE)
         if state == "running":
             pid = _int(status.get("pid"), 0)
-            if not (pid and _alive(pid)):
+            if pid and _alive(pid):
+                pass
+            elif logged is not None:  # its status could not be written, its log's could
+                state, reason = logged, logged_reason or reason
+            else:
                 state, reason = "killed", reason or "the job's process ended without a status"
+        elif state == "completed" and logged is None:
+            state = "missing"
+            reason = "the job's status says completed, but its run.mcap is missing or unreadable"
         elif logged is not None and state in ("completed", "missing") and logged != state:
             state = logged
         overrides = status.get("overrides", [])
@@ -261,32 +318,35 @@ def format_table(rows: list[dict[str, Any]]) -> str:
         wall_text = f"{wall:.1f}" if isinstance(wall, (int, float)) else str(wall)
         lines.append(
             f"| {r['job']} | {r['overrides']} | {r['state']} | {r['runs']} | {wall_text} "
-            f"| {cell(r.get('reason'))} | {cell(r.get('rerun_reason'))} |"
+            f"| {cell(r.get('reason'))} | {cell(r.get('rerun_reason') if r['runs'] > 1 else '')} |"
         )
     return "\n".join(lines)
 
 
-def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
-    """``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory."""
-    sweep_dir.mkdir(parents=True, exist_ok=True)
-    with open(sweep_dir / "sweep_status.csv", "w", newline="") as f:
-        writer = csv.DictWriter(
-            f,
-            fieldnames=[
-                "job",
-                "dir",
-                "overrides",
-                "state",
-                "runs",
-                "wall_s",
-                "reason",
-                "rerun_reason",
-            ],
-            extrasaction="ignore",
-        )
-        writer.writeheader()
-        writer.writerows(rows)
-    (sweep_dir / "sweep_status.md").write_text(format_table(rows) + "\n")
+def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> bool:
+    """``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory, each written
+    atomically (:func:`write_file`: a full disk leaves the old table whole, and says so
+    in one line).
+
+    Returns:
+        Whether both were written.
+    """
+    buffer = io.StringIO()
+    writer = csv.DictWriter(
+        buffer,
+        fieldnames=["job", "dir", "overrides", "state", "runs", "wall_s", "reason", "rerun_reason"],
+        extrasaction="ignore",
+    )
+    writer.writeheader()
+    writer.writerows(rows)
+    try:
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"cannot write the sweep table into {sweep_dir}: {err.strerror}", file=sys.stderr)
+        return False
+    done = write_file(sweep_dir / "sweep_status.csv", buffer.getvalue().encode(), "sweep table")
+    md = (format_table(rows) + "\n").encode()
+    return write_file(sweep_dir / "sweep_status.md", md, "sweep table") and done
 
 
 def _alive(pid: int) -> bool:
@@ -362,10 +422,10 @@ def finish_sweep(reason: str = "") -> int | None:
 
 def _report(sweep_dir: Path, interrupted: str = "") -> int:
     rows = collect(sweep_dir)
-    write_table(sweep_dir, rows)
     _ACTIVE["written"] = True
     print(f"\nsweep {sweep_dir}: {len(rows)} jobs")
-    print(format_table(rows))
+    print(format_table(rows), flush=True)
+    write_table(sweep_dir, rows)
     bad = [r for r in rows if r["state"] != "completed"]
     if interrupted:
         print(f"sweep interrupted: {interrupted}", file=sys.stderr)
@@ -550,7 +610,8 @@ def _claim(out: Path) -> Iterator[None]:
             with contextlib.suppress(OSError):
                 lock.unlink()  # stale: its process is gone
     try:
-        os.write(fd, str(os.getpid()).encode())
+        with contextlib.suppress(OSError):  # a full disk: the lock exists, unnamed
+            os.write(fd, str(os.getpid()).encode())
         os.close(fd)
         yield
     finally:

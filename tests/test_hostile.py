@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from harness.build import build
 from harness.checks import ConfigError
 from harness.jobs import verify_log
@@ -161,3 +163,44 @@ def test_resume_never_overwrites_an_unfinished_log_of_another_config(tmp_path, c
         status["state"] == "completed" and "kept as run.previous-1.mcap" in status["rerun_reason"]
     )
     assert (out / "run.previous-1.mcap").read_bytes() == data[: len(data) // 2]
+
+
+# ------------------------------------------------------------ 4. a full disk in a sweep
+@pytest.fixture
+def tiny_disk(tmp_path):
+    disk = tmp_path / "tmpfs"
+    disk.mkdir()
+    cmd = ["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(disk)]
+    if subprocess.run(cmd, capture_output=True).returncode != 0:
+        pytest.skip("no tmpfs mount here")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", str(disk)])
+
+
+def test_a_disk_full_during_a_sweep_records_the_reason_and_prints_the_table(
+    tiny_disk, compose, monkeypatch, capfd
+):
+    import json
+
+    from harness import jobs
+
+    # the disk fills up after the up-front check (another process writing)
+    monkeypatch.setattr("harness.run.check_disk", lambda *args: 0)
+    rates = ["log.field_every=1", "log.positions_every=1", "log.progress=off"]
+    cfg = compose(["grid.n=10", "agents.n=2000", "sim.t_final=2", *rates])
+    (tiny_disk / "sweep_status.md").write_text("| an older table |\n")
+    jobs.run_job(cfg, tiny_disk / "job", 0, ["seed=0"])
+    status = json.loads((tiny_disk / "job" / "job_status.json").read_text())
+    assert status["state"] == "aborted" and "disk full" in status["reason"], status
+    capfd.readouterr()
+    assert jobs._report(tiny_disk) == 1
+    out, err = capfd.readouterr()
+    assert "| aborted |" in out and "disk full" in out  # the table is printed
+    assert "Traceback" not in err
+    assert (tiny_disk / "sweep_status.md").stat().st_size > 0  # old or new, never empty
+    assert not list(tiny_disk.rglob("*.tmp"))
+    (tiny_disk / "job" / "run.mcap").unlink()  # room again: the table is written
+    assert jobs._report(tiny_disk) == 1
+    assert "| aborted |" in (tiny_disk / "sweep_status.md").read_text()
