@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 from pathlib import Path
 
@@ -27,6 +28,7 @@ import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
 
 from analysis.load import LogError, RunLog, load_run
+from analysis.output import atomic_path
 from analysis.plotting import save_figure
 
 
@@ -39,8 +41,27 @@ def _exact_estimates(run: RunLog) -> bool:
     return all(k in m and len(m[k]) > 0 and not np.any(m[k]) for k in ("eps_l2", "eps_g_l2"))
 
 
+_NAMES: dict[Path, str] = {}
+"""Names of the runs in the figures, made distinct by :func:`name_runs`."""
+
+
 def _name(run: RunLog) -> str:
-    return run.path.parent.name or "run"
+    return _NAMES.get(run.path, run.path.parent.name or "run")
+
+
+def name_runs(runs: list[RunLog]) -> list[str]:
+    """A distinct name per run for file names and legends: its directory's name, with
+    8 hex digits of its full path's SHA-256 where two runs' directories share a name.
+    """
+    plain = [r.path.parent.name or "run" for r in runs]
+    names = [
+        n
+        if plain.count(n) == 1
+        else f"{n}-{hashlib.sha256(str(r.path.resolve()).encode()).hexdigest()[:8]}"
+        for n, r in zip(plain, runs, strict=True)
+    ]
+    _NAMES.update({r.path: n for r, n in zip(runs, names, strict=True)})
+    return names
 
 
 def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
@@ -195,8 +216,11 @@ def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:
 
     anim = FuncAnimation(fig, draw, frames=len(frames), blit=False)
     path = out / f"{stem}.gif"
-    anim.save(path, writer=PillowWriter(fps=10))
-    plt.close(fig)
+    try:
+        with atomic_path(path) as tmp:
+            anim.save(tmp, writer=PillowWriter(fps=10))
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -220,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     single = len(runs) == 1
+    name_runs(runs)
     for run in runs:
         stem = "fig1" if single else f"fig1_{_name(run)}"
         written += figure1(run, args.out, stem)

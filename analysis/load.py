@@ -32,6 +32,8 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import InvalidMagic, StreamReader
 
+from analysis.output import atomic_path
+
 if TYPE_CHECKING:
     import xarray as xr
 
@@ -177,7 +179,8 @@ class RunLog:
         path = Path(path)
         ds = self.to_xarray()
         encoding = {topic.removeprefix("/fields/"): {"dtype": "float32"} for topic in self.fields}
-        ds.to_netcdf(path, engine="scipy", format="NETCDF3_64BIT", encoding=encoding)
+        with atomic_path(path) as tmp:  # an interrupted write leaves the old file
+            ds.to_netcdf(tmp, engine="scipy", format="NETCDF3_64BIT", encoding=encoding)
         return path
 
 

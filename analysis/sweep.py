@@ -96,6 +96,7 @@ import numpy as np
 
 from analysis.configs import component, flatten, logged_config
 from analysis.load import LogError, LogWarning, load_run
+from analysis.output import atomic_path
 from analysis.plotting import save_figure
 from analysis.stats import aggregate
 
@@ -400,7 +401,7 @@ def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
     """Tidy CSV: the varied config keys, the law, then the fixed columns."""
     keys = varied(rows)
     fixed = ["dir", "state", *STATS, "wall_s", "recovery"]
-    with open(path, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=[*keys, "law", *fixed], restval="")
         writer.writeheader()
         for r in rows:
@@ -488,7 +489,7 @@ def write_points(agg: list[dict[str, Any]], path: Path) -> None:
     """``sweep_aggregated.csv``."""
     if not agg:
         return
-    with open(path, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(agg[0]))
         writer.writeheader()
         writer.writerows(agg)

@@ -204,3 +204,46 @@ def test_a_disk_full_during_a_sweep_records_the_reason_and_prints_the_table(
     (tiny_disk / "job" / "run.mcap").unlink()  # room again: the table is written
     assert jobs._report(tiny_disk) == 1
     assert "| aborted |" in (tiny_disk / "sweep_status.md").read_text()
+
+
+# ------------------------------------------------------------ 7. analysis outputs, foreign content
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory):
+    from conftest import compose_cached
+
+    out = tmp_path_factory.mktemp("small")
+    cfg = compose_cached([*SMALL[:-2], "sim.t_final=0.2", "sim.dt=0.02", "log.progress=off"])
+    assert run(cfg, out).state == "completed"
+    return out / "run.mcap"
+
+
+def test_figures_are_written_atomically_and_never_share_a_name(tmp_path, small_log, monkeypatch):
+    import shutil
+
+    import matplotlib.pyplot as plt
+
+    from analysis import figures
+    from analysis.plotting import save_figure
+
+    good = tmp_path / "f.pdf"
+    good.write_bytes(b"%PDF good")
+    fig = plt.figure()
+
+    def interrupted(path, **kwargs):
+        Path(path).write_bytes(b"%PDF half")
+        raise KeyboardInterrupt  # SIGINT (or SIGTERM made an exception) while writing
+
+    fig.savefig = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        save_figure(fig, tmp_path, "f")
+    assert good.read_bytes() == b"%PDF good" and {p.name for p in tmp_path.iterdir()} == {"f.pdf"}
+    # two runs whose directories share a name: two sets of figures
+    for parent in ("a", "b"):
+        (tmp_path / parent / "run").mkdir(parents=True)
+        shutil.copy(small_log, tmp_path / parent / "run" / "run.mcap")
+    runs = [str(tmp_path / p / "run") for p in ("a", "b")]
+    drawn = []  # the stems main draws figure 1 into (drawing itself takes seconds)
+    monkeypatch.setattr(figures, "figure1", lambda run, out, stem: drawn.append(stem) or [])
+    monkeypatch.setattr(figures, "figure2", lambda runs, out: [])
+    assert figures.main([*runs, "--out", str(tmp_path / "figs"), "--no-gif"]) == 0
+    assert len(set(drawn)) == 2 and all(s.startswith("fig1_run") for s in drawn)
