@@ -333,6 +333,8 @@ def analyse(
         if run.recovery is not None:  # damaged or cut short: say so, whatever its status says
             row["recovery"] = run.recovery
             warnings.warn(f"{log_path}: {run.recovery}", SweepWarning, stacklevel=2)
+        if run.foreign is not None:  # values read as NaN: say so
+            warnings.warn(f"{log_path}: {run.foreign}", SweepWarning, stacklevel=2)
         flat = flatten(logged_config(run))
         row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
         row["code"] = code_of(run.metadata.get("provenance", {}))

@@ -206,7 +206,7 @@ def test_a_disk_full_during_a_sweep_records_the_reason_and_prints_the_table(
     assert "| aborted |" in (tiny_disk / "sweep_status.md").read_text()
 
 
-# ------------------------------------------------------------ 7. analysis outputs, foreign content
+# ---------------------------------------------------- 7. analysis outputs, foreign content
 @pytest.fixture(scope="module")
 def small_log(tmp_path_factory):
     from conftest import compose_cached
@@ -247,3 +247,147 @@ def test_figures_are_written_atomically_and_never_share_a_name(tmp_path, small_l
     monkeypatch.setattr(figures, "figure2", lambda runs, out: [])
     assert figures.main([*runs, "--out", str(tmp_path / "figs"), "--no-gif"]) == 0
     assert len(set(drawn)) == 2 and all(s.startswith("fig1_run") for s in drawn)
+
+
+# ---------------------------------------------------- 8. nothing rounded or dropped silently
+@pytest.mark.parametrize(
+    "overrides, key",
+    [
+        (["sim.t_final=0.25", "sim.dt=0.1"], "sim.t_final"),  # 2.5 steps
+        (["sim.t_final=0.2", "sim.dt=0.11"], "sim.t_final"),  # 1.8 steps
+        (["target.means=[[1.5,0.5],[0.3,0.3],[0.5,0.7]]"], "target.means"),
+        (["target.means=[[0.5,-0.01],[0.3,0.3],[0.5,0.7]]"], "target.means"),
+    ],
+)
+def test_values_that_would_be_rounded_or_dropped_are_refused(refusal, overrides, key):
+    line = refusal([*SMALL[:2], "log.progress=off", *overrides])
+    assert line is not None and line.startswith(f"invalid config: {key}="), line
+
+
+def test_whole_step_counts_and_centres_on_the_boundary_are_accepted(refusal):
+    for overrides in (
+        ["sim.t_final=0.06", "sim.dt=0.02"],  # 2.9999999999999996 steps in floating point
+        ["sim.t_final=100", "sim.dt=0.01"],
+        ["target.means=[[1.0,0.0],[0.3,0.3],[0.5,0.7]]"],
+    ):
+        assert refusal([*SMALL[:2], *overrides]) is None, overrides
+
+
+def test_a_law_whose_feedback_diffusivity_is_nan_is_refused(compose, monkeypatch):
+    from harness.control import PaperControl
+
+    monkeypatch.setattr(PaperControl, "feedback_diffusivity", lambda self, p0: float("nan"))
+    with pytest.raises(ConfigError, match=r"^invalid config: control=.*feedback_diffusivity"):
+        build(compose(SMALL))
+
+
+def test_metric_values_that_are_not_finite_numbers_are_warned_about(tmp_path, capsys):
+    import warnings
+
+    import numpy as np
+    from mcap.writer import Writer
+
+    from analysis import sweep
+    from analysis.load import LogWarning, load_run
+
+    rows = [
+        b'{"t": 0.0, "phi_l2": 1.0, "eps_l2": 0.1, "eps_g_l2": 0.1}',
+        b'{"t": 0.5, "phi_l2": 1e400, "eps_l2": true, "eps_g_l2": 0.1}',
+        b'{"t": null, "phi_l2": 0.5, "eps_l2": 0.1, "eps_g_l2": 0.1}',
+        b'{"t": 1.0, "phi_l2": 0.25, "eps_l2": 0.1, "eps_g_l2": "0.1"}',
+        b'{"t": 1.5, "phi_l2": 0.2, "eps_l2": 0.1, "eps_g_l2": null}',
+    ]
+    for job in ("a", "b"):
+        path = tmp_path / job / "run.mcap"
+        path.parent.mkdir()
+        with open(path, "wb") as f:
+            w = Writer(f)
+            w.start()
+            cid = w.register_channel("/metrics", "json", w.register_schema("m", "jsonschema", b""))
+            for i, row in enumerate(rows):
+                w.add_message(cid, i, row, i)
+            w.add_metadata("config", {"yaml": f"seed: {job == 'a'}\n"})
+            w.add_metadata("status", {"state": "completed", "reason": ""})
+            w.finish()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        log = load_run(tmp_path / "a")
+    said = " ".join(str(w.message) for w in caught if w.category is LogWarning)
+    assert "eps_g_l2 (1)" in said and "eps_l2 (1)" in said and "phi_l2 (1)" in said
+    assert "skipped 1 damaged" in said  # the message without a time
+    np.testing.assert_array_equal(log.metrics["t"], [0.0, 0.5, 1.0, 1.5])
+    np.testing.assert_array_equal(log.metrics["eps_l2"], [0.1, np.nan, 0.1, 0.1])
+    assert np.isnan(log.metrics["phi_l2"][1]) and np.isnan(log.metrics["eps_g_l2"][3])
+    assert sweep.main([str(tmp_path)]) == 0
+    assert "not finite numbers" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------ 3. the machine's real limits
+def _tree(root, files):
+    for name, text in files.items():
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_text(text)
+    return root
+
+
+@pytest.mark.parametrize(
+    "files, source",
+    [
+        (  # cgroup v1: the limit on the parent group (400 MB, 100 MB used)
+            {
+                "proc/self/cgroup": "5:pids:/\n4:memory:/slurm/job7\n0::/\n",
+                "sys/fs/cgroup/memory/memory.limit_in_bytes": "9223372036854771712\n",
+                "sys/fs/cgroup/memory/memory.usage_in_bytes": "5000000000\n",
+                "sys/fs/cgroup/memory/slurm/memory.limit_in_bytes": "400000000\n",
+                "sys/fs/cgroup/memory/slurm/memory.usage_in_bytes": "100000000\n",
+                "sys/fs/cgroup/memory/slurm/job7/memory.limit_in_bytes": "9223372036854771712\n",
+                "sys/fs/cgroup/memory/slurm/job7/memory.usage_in_bytes": "90000000\n",
+            },
+            "/sys/fs/cgroup/memory/slurm/memory.limit_in_bytes",
+        ),
+        (  # cgroup v2, nested: the systemd slice limits, the scope does not
+            {
+                "proc/self/cgroup": "0::/user.slice/run-1.scope\n",
+                "sys/fs/cgroup/user.slice/memory.max": "500000000\n",
+                "sys/fs/cgroup/user.slice/memory.current": "200000000\n",
+                "sys/fs/cgroup/user.slice/run-1.scope/memory.max": "max\n",
+                "sys/fs/cgroup/user.slice/run-1.scope/memory.current": "1000\n",
+            },
+            "/sys/fs/cgroup/user.slice/memory.max",
+        ),
+    ],
+    ids=["cgroup-v1-parent", "cgroup-v2-nested"],
+)
+def test_memory_limits_of_every_cgroup_level_are_found(tmp_path, compose, files, source):
+    from harness import checks
+    from harness.grid import Grid
+
+    files["proc/meminfo"] = "MemTotal: 64000000 kB\nMemAvailable: 60000000 kB\n"
+    have = checks.memory_available(_tree(tmp_path, files))
+    assert have is not None and have[0] == 300_000_000 and source in have[1]
+    cfg = compose([*SMALL[:1], "agents.n=10000000", *SMALL[2:]])  # about 2 GB
+    with pytest.raises(ConfigError, match="agents.n=10000000: .*" + source):
+        checks.check_memory(cfg, Grid(8, 8), have)
+
+
+def test_the_address_space_limit_is_a_memory_limit(tmp_path):
+    import resource
+
+    limit = 6 << 30
+
+    def cap():
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "NUMBA_NUM_THREADS": "1"}
+    args = [*SMALL[:1], "agents.n=40000000", *SMALL[2:], f"hydra.run.dir={tmp_path / 'x'}"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "experiments.closed_loop", *args],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+        env=env,
+        preexec_fn=cap,
+    )
+    one_line_refusal(proc, "agents.n=40000000", "RLIMIT_AS")
+    assert not (tmp_path / "x").exists()
