@@ -125,6 +125,21 @@ class ConfigError(ValueError):
         super().__init__(f"invalid config: {key}={value!r}: {allowed}")
 
 
+def config_line(err: ConfigError) -> str:
+    """The one line to print for ``err``: its text, completed by the reason of the error
+    it was made from when its text stops at a colon (``Error loading 'pkg.Law':``, whose
+    reason, such as the missing module, is on the cause's next lines).
+    """
+    text = str(err)
+    cause = err.__context__
+    while text.endswith(":") and cause is not None:
+        lines = [ln.strip() for ln in str(cause).strip().splitlines() if ln.strip()]
+        if len(lines) > 1:
+            return f"{text} {lines[1]}"
+        cause = cause.__cause__ or cause.__context__
+    return text
+
+
 class ConfigWarning(UserWarning):
     """A config that runs, but a check could not be made."""
 
@@ -612,6 +627,7 @@ __all__ = [
     "check_resolvable",
     "check_shared",
     "check_unread",
+    "config_line",
     "density_on_grid",
     "describe",
     "target_on_grid",

@@ -42,6 +42,7 @@ import csv
 import hashlib
 import io
 import json
+import logging
 import multiprocessing
 import os
 import signal
@@ -61,7 +62,7 @@ from mcap.stream_reader import StreamReader
 from omegaconf import DictConfig, OmegaConf
 
 from harness.build import Experiment, build
-from harness.checks import ConfigError, check_disk
+from harness.checks import ConfigError, check_disk, config_line
 from harness.identity import code_change, code_identity, config_hash
 from harness.mcap_log import LOG_FILE
 from harness.run import RunResult, Terminated, run
@@ -448,8 +449,15 @@ class SweepStatusCallback(Callback):
     """
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Remember the sweep and take over SIGINT, SIGTERM and SIGHUP."""
+        """Check that the sweep directory can be created and written (one line and exit
+        status 2 otherwise), remember the sweep and take over SIGINT, SIGTERM and SIGHUP.
+        """
         _ACTIVE.clear()
+        try:
+            usable_dir("hydra.sweep.dir", Path(str(config.hydra.sweep.dir)))
+        except ConfigError as err:
+            print(err, file=sys.stderr)
+            sys.exit(2)
         _ACTIVE["dir"] = str(config.hydra.sweep.dir)
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -487,7 +495,8 @@ class CheckCallback(Callback):
         """Build the run to check it, then claim its directory."""
         _CHECKED.clear()
         try:
-            parts = build(config)
+            with quiet_hydra_utils():
+                parts = build(config)
             out = Path(str(config.hydra.run.dir))
             check_dir_name("hydra.run.dir", out)
             if (out / LOG_FILE).exists() or (out / LOG_FILE).is_symlink():
@@ -499,12 +508,26 @@ class CheckCallback(Callback):
             check_disk(parts.disk, out)
             claim_run_dir(out)
         except ConfigError as err:
-            print(err, file=sys.stderr)
+            print(config_line(err), file=sys.stderr)
             sys.exit(2)
         except Exception as err:  # Hydra would turn it into a warning and run on
             print(f"cannot start: {one_line(err)}", file=sys.stderr)
             sys.exit(2)
         _CHECKED[config_hash(config)] = parts
+
+
+@contextlib.contextmanager
+def quiet_hydra_utils() -> Iterator[None]:
+    """Silence the logger of ``hydra.utils``, which writes the reason an object cannot
+    be loaded to standard output; the refusal says it on standard error instead.
+    """
+    logger = logging.getLogger("hydra.utils")
+    before = logger.disabled
+    logger.disabled = True
+    try:
+        yield
+    finally:
+        logger.disabled = before
 
 
 def one_line(err: BaseException) -> str:
@@ -525,6 +548,27 @@ def check_dir_name(key: str, path: Path) -> None:
             raise ConfigError(
                 key, str(path)[:80] + "...", "a path whose names are at most 255 bytes"
             )
+
+
+def usable_dir(key: str, path: Path) -> None:
+    """Create ``path`` (with its parents) and check that a file can be created in it.
+
+    Raises:
+        ConfigError: naming ``key``, for a name too long, a path under a file, a device
+            (``/dev/null``), or a read-only or full file system.
+    """
+    check_dir_name(key, path)
+    probe = path / f".probe.{os.getpid()}"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if not path.is_dir():
+            raise NotADirectoryError(20, "not a directory", str(path))
+        probe.touch()
+        probe.unlink()
+    except OSError as err:
+        raise ConfigError(
+            key, str(path), f"a directory that can be created and written ({err.strerror})"
+        ) from None
 
 
 RUN_LOCK = ".run.lock"
@@ -712,10 +756,11 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
         else:
             why = f"the log's status is {check.state}"
         try:
-            _PENDING[:] = [build(cfg)]
+            with quiet_hydra_utils():
+                _PENDING[:] = [build(cfg)]
         except ConfigError as err:
-            print(err, file=sys.stderr)
-            write_status(out, state="invalid", reason=str(err), pid=0, **ident)
+            print(config_line(err), file=sys.stderr)
+            write_status(out, state="invalid", reason=config_line(err), pid=0, **ident)
             return None
         if log.exists() or log.is_symlink():
             if same_config and not changed and check.provenance and check.state != "completed":

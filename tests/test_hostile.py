@@ -7,8 +7,10 @@ foreign content, and values that would be rounded or dropped without a word.
 
 import multiprocessing
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -391,3 +393,76 @@ def test_the_address_space_limit_is_a_memory_limit(tmp_path):
     )
     one_line_refusal(proc, "agents.n=40000000", "RLIMIT_AS")
     assert not (tmp_path / "x").exists()
+
+
+# ------------------------------------------------------------ 5. one line for every error
+PLUGIN = """
+class Boom:
+    def __init__(self, **kwargs):
+        raise RuntimeError("the plugin's constructor failed")
+
+
+class BoomIO:
+    def __init__(self, **kwargs):
+        raise OSError(5, "the plugin's device failed")
+"""
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["~control", "+control._target_=boom.Boom"], ["RuntimeError", "constructor failed"]),
+        (["~control", "+control._target_=boom.BoomIO"], ["OSError", "device failed"]),
+        (["control._target_=nosuchmodule.Law"], ["control._target_", "No module named"]),
+        (["grid.n==5"], ["invalid config: grid.n="]),
+        (["grid.n=" + "5" * 5000], ["invalid config: grid.n=", "5000 characters"]),
+        (["+" + "k" * 3000 + "=1"], ["invalid config: +kkk", "3001 characters"]),
+        (["target.floor=é"], ["invalid config: target.floor="]),
+        (["hydra.run.dir={tmp}/" + "a" * 300], ["hydra.run.dir", "255 bytes"]),
+        (["hydra.run.dir=/dev/null"], ["hydra.run.dir", "created and written"]),
+        (["hydra.run.dir={tmp}/file/run"], ["hydra.run.dir", "Not a directory"]),
+        (["-m", "seed=1,2", "hydra.sweep.dir={tmp}/file/sweep"], ["hydra.sweep.dir"]),
+    ],
+    ids=[
+        "plugin-RuntimeError",
+        "plugin-OSError",
+        "missing-module",
+        "syntax",
+        "5000-digits",
+        "3000-char-key",
+        "non-ascii",
+        "300-char-dir",
+        "dev-null",
+        "under-a-file",
+        "sweep-under-a-file",
+    ],
+)
+def test_errors_before_the_first_step_are_one_line_with_exit_2(tmp_path, args, words):
+    (tmp_path / "plugins").mkdir()
+    (tmp_path / "plugins" / "boom.py").write_text(PLUGIN)
+    (tmp_path / "file").write_text("a file, not a directory\n")
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    if not any(a.startswith("hydra.") for a in args):
+        args.append(f"hydra.run.dir={tmp_path / 'out'}")
+    env = {"PYTHONPATH": f"{ROOT}:{tmp_path / 'plugins'}", "HYDRA_FULL_ERROR": "0"}
+    flags = [a for a in args if a == "-m"]
+    proc = cli(*flags, *SMALL, *[a for a in args if a != "-m"], env=env)
+    one_line_refusal(proc, *words)
+    assert proc.stdout.strip() == ""  # every reason on standard error
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob("*/.hydra"))
+
+
+def test_sigterm_before_the_run_starts_is_one_line(tmp_path):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "experiments.closed_loop", *SMALL, f"hydra.run.dir={tmp_path}/x"],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    time.sleep(0.3)  # loading its modules
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and err.strip().startswith("interrupted: received SIGTERM")
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
