@@ -63,6 +63,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from harness.build import Experiment, build
 from harness.checks import ConfigError, check_disk, config_line
+from harness.components import ParameterError
 from harness.identity import code_change, code_identity, config_hash
 from harness.mcap_log import LOG_FILE
 from harness.run import RunResult, Terminated, run
@@ -506,6 +507,7 @@ class CheckCallback(Callback):
                     "a directory without a run.mcap (it holds one already: not overwritten)",
                 )
             check_disk(parts.disk, out)
+            probe_observers(parts)
             claim_run_dir(out)
         except ConfigError as err:
             print(config_line(err), file=sys.stderr)
@@ -528,6 +530,24 @@ def quiet_hydra_utils() -> Iterator[None]:
         yield
     finally:
         logger.disabled = before
+
+
+def probe_observers(exp: Experiment) -> None:
+    """Ask every observer that can (``probe()``: the live view's address and port)
+    whether it will start, before anything is written.
+
+    Raises:
+        ConfigError: naming the public key of the refused parameter.
+    """
+    for name, observer in exp.observers.items():
+        probe = getattr(observer, "probe", None)
+        if probe is None:
+            continue
+        try:
+            probe()
+        except ParameterError as err:
+            key = exp.keys.get(f"observers.{name}.{err.name}", f"observers.{name}.{err.name}")
+            raise ConfigError(key, err.value, err.allowed) from None
 
 
 def one_line(err: BaseException) -> str:

@@ -466,3 +466,40 @@ def test_sigterm_before_the_run_starts_is_one_line(tmp_path):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 130 and err.strip().startswith("interrupted: received SIGTERM")
     assert len(err.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+
+
+# ------------------------------------------------------------ 6. the live view
+def test_a_stalled_client_holds_the_live_view_only_briefly():
+    pytest.importorskip("websockets")
+    from test_live import Client, metrics_schema
+
+    from harness.live import LiveServer
+
+    server = LiveServer(port=0, backlog=1024)
+    server.channel("/metrics", *metrics_schema())
+    with Client(server.url, {"/metrics"}, read=False) as client:
+        client.wait_for(lambda: server.subscribed("/metrics"), "the subscription")
+        for i in range(2000):
+            server.publish("/metrics", i, bytes(100_000))
+        start = time.monotonic()
+        server.close()  # the server would wait tens of seconds for the client's queue
+        assert time.monotonic() - start < LiveServer.STOP_S + 1.0
+
+
+def test_live_view_that_cannot_start_leaves_nothing_and_names_its_key(tmp_path):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        for arg, key in (
+            (f"log.live_port={port}", "log.live_port"),
+            ("log.live_host=no-such-host.invalid", "log.live_host"),
+        ):
+            out = tmp_path / key
+            proc = cli(
+                *SMALL, "log.live=true", f"log.live_port={port}", arg, f"hydra.run.dir={out}"
+            )
+            one_line_refusal(proc, f"invalid config: {key}=")
+            assert not out.exists()  # no .hydra, no closed_loop.log, no run.mcap
