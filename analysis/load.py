@@ -148,13 +148,24 @@ class RunLog:
         The metrics keep dim ``t``; field topic ``/fields/NAME`` becomes variable
         ``NAME`` with its own time dim ``t_NAME`` (topics are logged at different
         times: ``p_target`` once) and, for two-component fields, dim
-        ``component_NAME``; all fields share ``y`` and ``x``. The metadata records
+        ``component_NAME``; all fields share ``y`` and ``x`` (a metric named like one of
+        these, as a foreign log may have, is renamed ``metric_KEY``). The metadata records
         become string attributes ``RECORD.KEY`` (``config.yaml``,
         ``provenance.git_commit``, ``status.state``, ...).
         """
         import xarray as xr
 
-        parts: list[xr.Dataset | xr.DataArray] = [self.metrics_xarray()]
+        taken = {"x", "y"}
+        for topic in self.fields:
+            name = topic.removeprefix("/fields/")
+            taken |= {name, f"t_{name}", f"component_{name}"}
+        metrics = {}
+        for key, values in self.metrics.items():
+            new = key
+            while new in taken or (new != key and new in self.metrics):
+                new = f"metric_{new}"  # a foreign metric named like a field or coordinate
+            metrics[new] = values
+        parts: list[xr.Dataset | xr.DataArray] = [metrics_dataset(metrics)]
         for topic in self.fields:
             name = topic.removeprefix("/fields/")
             da = self.field_xarray(topic).rename({"t": f"t_{name}"})

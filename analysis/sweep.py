@@ -283,6 +283,15 @@ def mixed(rows: list[dict[str, Any]], primary: list[str]) -> list[str]:
     return out
 
 
+class MetricSeries(dict):
+    """A run's metric arrays, where a metric the log lacks (a foreign or older log) reads
+    as NaN at every time, so the figures draw what there is.
+    """
+
+    def __missing__(self, key: str) -> np.ndarray:
+        return np.full(len(self.get("t", ())), np.nan)
+
+
 def code_of(provenance: dict[str, str]) -> str:
     """The code a log was made by, from its ``provenance`` record: ``code_sha256`` (the
     commit, the diff's hash and the package versions), else the commit with ``+dirty``
@@ -349,7 +358,7 @@ def analyse(
             row.update(job_stats(run, job_tail))
             steps = len(run.metrics["t"]) - 1
             row["ms_per_step"] = 1e3 * row["wall_s"] / steps
-            series[job_dir.name] = run.metrics
+            series[job_dir.name] = MetricSeries(run.metrics)
         rows.append(row)
     return rows, series
 

@@ -14,6 +14,9 @@ import time
 from pathlib import Path
 
 import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from harness.build import build
 from harness.checks import ConfigError
@@ -503,3 +506,189 @@ def test_live_view_that_cannot_start_leaves_nothing_and_names_its_key(tmp_path):
             )
             one_line_refusal(proc, f"invalid config: {key}=")
             assert not out.exists()  # no .hydra, no closed_loop.log, no run.mcap
+
+
+# foreign content for every analysis entry point (hypothesis)
+RAW_NUMBERS = ["1e400", "-1e400", "NaN", "Infinity", "true", "null", '"0.5"', "[1, 2]", "{}"]
+METRIC_NAMES = ["phi_l2", "eps_l2", "eps_g_l2", "phat_target_l2", "swarm_l2", "x", "y", "t_p_hat"]
+
+
+def _alias_bomb(levels, fan):
+    lines = ["l0: &l0 [" + ", ".join(["x"] * fan) + "]"]
+    for i in range(1, levels):
+        lines.append(f"l{i}: &l{i} [" + ", ".join([f"*l{i - 1}"] * fan) + "]")
+    return "\n".join(lines) + "\n"
+
+
+yaml_values = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers()
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=20),
+    lambda inner: (
+        st.lists(inner, max_size=4)
+        | st.dictionaries(st.sampled_from(["grid", "n", "kde", "debias", "sigma", "seed"]), inner)
+    ),
+    max_leaves=20,
+)
+configs = st.one_of(
+    st.builds(
+        lambda d: yaml.safe_dump(d),
+        st.fixed_dictionaries(
+            {},
+            optional={
+                "grid": st.dictionaries(st.sampled_from(["n", "length"]), yaml_values),
+                "kde": st.dictionaries(st.sampled_from(["debias", "bandwidth"]), yaml_values),
+                "dynamics": st.dictionaries(st.just("sigma"), yaml_values),
+                "analysis": st.dictionaries(st.sampled_from(["figure", "primary"]), yaml_values),
+                "seed": yaml_values,
+            },
+        ),
+    ),
+    st.builds(_alias_bomb, st.integers(2, 12), st.integers(2, 10)),
+    st.just("a: &a [1, *a]\n"),
+    st.just("a: &a\n  b: *a\n"),
+    st.integers(10, 3000).map(lambda k: "[" * k + "]" * k),
+    st.text(max_size=200),
+)
+metric_values = st.one_of(
+    st.floats(-1e3, 1e3).map(repr), st.sampled_from(RAW_NUMBERS), st.integers().map(str)
+)
+metric_rows = st.lists(
+    st.fixed_dictionaries(
+        {"t": st.one_of(st.floats(0, 100).map(repr), st.sampled_from(RAW_NUMBERS))},
+        optional={k: metric_values for k in METRIC_NAMES},
+    ),
+    max_size=6,
+)
+fields = st.dictionaries(
+    st.sampled_from(["/fields/p_hat", "/fields/p_target", "/fields/velocity"]),
+    st.tuples(st.integers(1, 3), st.integers(1, 3), st.integers(1, 2), st.integers(1, 3)),
+) | st.builds(  # the shapes the figures draw, on grids of 2 or 3 cells a side
+    lambda ny, nx, count: {
+        "/fields/p_hat": (ny, nx, 1, count),
+        "/fields/p_target": (ny, nx, 1, 1),
+        "/fields/velocity": (ny, nx, 2, count),
+    },
+    st.integers(2, 3),
+    st.integers(2, 3),
+    st.integers(1, 3),
+)
+foreign_logs = st.fixed_dictionaries(
+    {
+        "config": configs,
+        "rows": metric_rows,
+        "fields": fields,
+        "theory": st.dictionaries(
+            st.sampled_from(["rate_exact", "swarm_l2_floor_mean"]), st.text(max_size=8)
+        ),
+        "code": st.sampled_from(["one", "two"]),
+    }
+)
+
+
+def write_foreign(path, log):
+    import numpy as np
+    from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
+    from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
+    from mcap.writer import Writer
+    from mcap_protobuf.schema import register_schema
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        cid = w.register_channel("/metrics", "json", w.register_schema("m", "jsonschema", b""))
+        for i, row in enumerate(log["rows"]):
+            text = "{" + ", ".join(f'"{k}": {v}' for k, v in row.items()) + "}"
+            w.add_message(cid, i, text.encode(), i)
+        gsid = register_schema(w, GridMsg)
+        for topic, (ny, nx, k, count) in log["fields"].items():
+            gcid = w.register_channel(topic, "protobuf", gsid)
+            for j in range(count):
+                msg = GridMsg(column_count=nx, cell_stride=4 * k, row_stride=4 * k * nx)
+                msg.cell_size.x = msg.cell_size.y = 1.0 / nx
+                for c in range(k):
+                    msg.fields.append(
+                        PackedElementField(
+                            name=f"f{c}", offset=4 * c, type=PackedElementField.FLOAT32
+                        )
+                    )
+                msg.data = np.linspace(0.1, 2, ny * nx * k).astype("<f4").tobytes()
+                w.add_message(gcid, j, msg.SerializeToString(), j)
+        w.add_metadata("config", {"yaml": log["config"]})
+        w.add_metadata("theory", log["theory"])
+        w.add_metadata("provenance", {"code_sha256": log["code"]})
+        w.add_metadata("status", {"state": "completed", "reason": ""})
+        w.finish()
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck))
+@given(logs=st.lists(foreign_logs, min_size=1, max_size=2))
+def test_every_analysis_entry_point_works_or_says_one_line_on_foreign_logs(tmp_path_factory, logs):
+    import contextlib
+    import io
+    import tracemalloc
+    import warnings
+
+    from analysis import configs, diff, figures, peclet, sweep
+    from analysis.load import LogError, load_run
+
+    root = tmp_path_factory.mktemp("foreign")
+    paths = [root / f"job{i}" / "run.mcap" for i in range(len(logs))]
+    for path, log in zip(paths, logs, strict=True):
+        write_foreign(path, log)
+    no_drawing = pytest.MonkeyPatch()  # draw every figure, skip rendering it (seconds)
+    for module in (figures, sweep):
+        no_drawing.setattr(module, "save_figure", lambda fig, out, stem, dpi=120: [])
+    no_drawing.setattr(figures, "animation", lambda run, out, stem: out / f"{stem}.gif")
+    calls = [
+        lambda: sweep.main([str(root)]),
+        lambda: sweep.main([str(root), "--mixed-code"]),
+        lambda: peclet.main([str(root)]),
+        lambda: figures.main([*map(str, paths), "--out", str(root / "figs")]),
+        lambda: diff.main([str(paths[0]), str(paths[-1])]),
+    ]
+    tracemalloc.start()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            for path in paths:
+                try:
+                    run_log = load_run(path)
+                except LogError:
+                    continue
+                configs.logged_config(run_log)
+                run_log.to_xarray()
+            for call in calls:
+                err = io.StringIO()
+                start = time.monotonic()
+                with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+                    status = call()
+                assert status in (0, 1, 2)
+                errors = [ln for ln in err.getvalue().splitlines() if ln.startswith("error")]
+                assert len(errors) <= 1 and (status != 2 or len(errors) == 1), err.getvalue()
+                assert time.monotonic() - start < 60
+        assert tracemalloc.get_traced_memory()[1] < 500e6  # peak bytes
+    finally:
+        tracemalloc.stop()
+        no_drawing.undo()
+
+
+def test_a_fifo_or_device_in_place_of_a_log_is_never_read_or_trusted(tmp_path, small_log):
+    import json
+
+    from analysis import diff
+    from harness.jobs import collect
+
+    fifo = tmp_path / "fifo" / "run.mcap"
+    fifo.parent.mkdir()
+    os.mkfifo(fifo)
+    assert diff.main([str(small_log), str(fifo)]) == 2  # not a read that never ends
+    job = tmp_path / "sweep" / "job"
+    job.mkdir(parents=True)
+    (job / "run.mcap").symlink_to("/dev/null")
+    (job / "job_status.json").write_text(json.dumps({"job": 0, "state": "completed", "runs": 1}))
+    (row,) = collect(tmp_path / "sweep")
+    assert row["state"] == "missing" and "run.mcap" in row["reason"]
