@@ -40,6 +40,8 @@ def safe_config(text: str) -> Any:
     """
     if len(text) > MAX_CONFIG_CHARS:
         raise ConfigRecordError(f"{len(text)} characters, more than {MAX_CONFIG_CHARS}")
+    if _flow_depth(text) > MAX_CONFIG_DEPTH:  # the YAML scanner takes depth^2 steps
+        raise ConfigRecordError(f"nested more than {MAX_CONFIG_DEPTH} levels deep")
     try:
         root = yaml.compose(text, Loader=yaml.SafeLoader)
     except RecursionError:
@@ -48,6 +50,20 @@ def safe_config(text: str) -> Any:
         return None
     _measure(root)
     return yaml.safe_load(text)
+
+
+def _flow_depth(text: str) -> int:
+    """Deepest nesting of ``[`` and ``{`` in ``text`` (quotes not considered: an upper
+    bound of the flow collections' depth), in one pass.
+    """
+    depth = deepest = 0
+    for char in text:
+        if char in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif char in "]}":
+            depth = max(depth - 1, 0)
+    return deepest
 
 
 def _measure(root: yaml.Node) -> None:
