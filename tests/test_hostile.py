@@ -411,33 +411,63 @@ class BoomIO:
 """
 
 
+SLOW = pytest.mark.slow  # more of the same path; the fast suite keeps one of each kind
+
+
 @pytest.mark.parametrize(
     "args, words",
     [
-        (["~control", "+control._target_=boom.Boom"], ["RuntimeError", "constructor failed"]),
-        (["~control", "+control._target_=boom.BoomIO"], ["OSError", "device failed"]),
-        (["control._target_=nosuchmodule.Law"], ["control._target_", "No module named"]),
-        (["grid.n==5"], ["invalid config: grid.n="]),
-        (["grid.n=" + "5" * 5000], ["invalid config: grid.n=", "5000 characters"]),
-        (["+" + "k" * 3000 + "=1"], ["invalid config: +kkk", "3001 characters"]),
-        (["target.floor=é"], ["invalid config: target.floor="]),
-        (["hydra.run.dir={tmp}/" + "a" * 300], ["hydra.run.dir", "255 bytes"]),
-        (["hydra.run.dir=/dev/null"], ["hydra.run.dir", "created and written"]),
-        (["hydra.run.dir={tmp}/file/run"], ["hydra.run.dir", "Not a directory"]),
-        (["-m", "seed=1,2", "hydra.sweep.dir={tmp}/file/sweep"], ["hydra.sweep.dir"]),
-    ],
-    ids=[
-        "plugin-RuntimeError",
-        "plugin-OSError",
-        "missing-module",
-        "syntax",
-        "5000-digits",
-        "3000-char-key",
-        "non-ascii",
-        "300-char-dir",
-        "dev-null",
-        "under-a-file",
-        "sweep-under-a-file",
+        pytest.param(
+            ["~control", "+control._target_=boom.Boom"],
+            ["RuntimeError", "constructor failed"],
+            id="plugin-RuntimeError",
+        ),
+        pytest.param(
+            ["~control", "+control._target_=boom.BoomIO"],
+            ["OSError", "device failed"],
+            id="plugin-OSError",
+            marks=SLOW,
+        ),
+        pytest.param(
+            ["control._target_=nosuchmodule.Law"],
+            ["control._target_", "No module named"],
+            id="missing-module",
+        ),
+        pytest.param(["grid.n==5"], ["invalid config: grid.n="], id="syntax"),
+        pytest.param(
+            ["grid.n=" + "5" * 5000],
+            ["invalid config: grid.n=", "5000 characters"],
+            id="5000-digits",
+        ),
+        pytest.param(
+            ["+" + "k" * 3000 + "=1"],
+            ["invalid config: +kkk", "3001 characters"],
+            id="3000-char-key",
+            marks=SLOW,
+        ),
+        pytest.param(
+            ["target.floor=é"], ["invalid config: target.floor="], id="non-ascii", marks=SLOW
+        ),
+        pytest.param(
+            ["hydra.run.dir={tmp}/" + "a" * 300],
+            ["hydra.run.dir", "255 bytes"],
+            id="300-char-dir",
+            marks=SLOW,
+        ),
+        pytest.param(
+            ["hydra.run.dir=/dev/null"], ["hydra.run.dir", "created and written"], id="dev-null"
+        ),
+        pytest.param(
+            ["hydra.run.dir={tmp}/file/run"],
+            ["hydra.run.dir", "Not a directory"],
+            id="under-a-file",
+            marks=SLOW,
+        ),
+        pytest.param(
+            ["-m", "seed=1,2", "hydra.sweep.dir={tmp}/file/sweep"],
+            ["hydra.sweep.dir"],
+            id="sweep-under-a-file",
+        ),
     ],
 )
 def test_errors_before_the_first_step_are_one_line_with_exit_2(tmp_path, args, words):
