@@ -48,6 +48,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("b", type=Path)
     args = parser.parse_args(argv)
     paths = [p / "run.mcap" if p.is_dir() else p for p in (args.a, args.b)]
+    for p in paths:
+        if not p.is_file():  # missing, or a FIFO or device that would block or never end
+            print(f"error: {p} is not a regular file", file=sys.stderr)
+            return 2
     try:
         count, diff = first_difference(*paths)
     except Exception as err:  # unreadable: say which and why

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 from pathlib import Path
 
@@ -27,6 +28,7 @@ import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
 
 from analysis.load import LogError, RunLog, load_run
+from analysis.output import atomic_path
 from analysis.plotting import save_figure
 
 
@@ -39,8 +41,66 @@ def _exact_estimates(run: RunLog) -> bool:
     return all(k in m and len(m[k]) > 0 and not np.any(m[k]) for k in ("eps_l2", "eps_g_l2"))
 
 
+def _float(text: object) -> float:
+    """``text`` as a number, NaN when it is not one."""
+    try:
+        return float(text)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return float("nan")
+
+
+_NAMES: dict[Path, str] = {}
+"""Names of the runs in the figures, made distinct by :func:`name_runs`."""
+
+
 def _name(run: RunLog) -> str:
-    return run.path.parent.name or "run"
+    return _NAMES.get(run.path, run.path.parent.name or "run")
+
+
+def name_runs(runs: list[RunLog]) -> list[str]:
+    """A distinct name per run for file names and legends: its directory's name, with
+    8 hex digits of its full path's SHA-256 where two runs' directories share a name.
+    """
+    plain = [r.path.parent.name or "run" for r in runs]
+    names = [
+        n
+        if plain.count(n) == 1
+        else f"{n}-{hashlib.sha256(str(r.path.resolve()).encode()).hexdigest()[:8]}"
+        for n, r in zip(plain, runs, strict=True)
+    ]
+    _NAMES.update({r.path: n for r, n in zip(runs, names, strict=True)})
+    return names
+
+
+SHAPES = {"/fields/p_hat": 1, "/fields/p_target": 1, "/fields/velocity": 2}
+"""The field topics the figures draw, with their number of components."""
+
+
+def problem(run: RunLog) -> str | None:
+    """Why the figures cannot be drawn from ``run`` (a topic or metric missing, a field
+    of another shape than the log contract's, or no finite value to draw), or None.
+    """
+    missing = set(SHAPES) - set(run.fields)
+    m = run.metrics
+    if missing or "phat_target_l2" not in m or "phi_l2" not in m or len(m.get("t", ())) == 0:
+        return f"lacks {sorted(missing) or ['/metrics']}"
+    shape = run.fields["/fields/p_hat"].values.shape[-2:]
+    for topic, components in SHAPES.items():
+        series = run.fields[topic]
+        cell = np.asarray(series.cell_size, dtype=float)
+        if series.values.shape[1] != components or series.values.shape[-2:] != shape:
+            return (
+                f"{topic} holds {series.values.shape[1]} component(s) on "
+                f"{series.values.shape[-2]} x {series.values.shape[-1]} cells; the figures "
+                f"draw {components} on the grid of /fields/p_hat ({shape[0]} x {shape[1]})"
+            )
+        if min(shape) < 2 or not (np.isfinite(cell).all() and (cell > 0).all()):
+            return f"{topic}: a grid of at least 2 x 2 cells of positive size is drawn"
+        if not np.isfinite(series.values).any():
+            return f"{topic} holds no finite value"
+    if not np.isfinite(m["t"]).all():
+        return "the metrics' times are not all finite"
+    return None
 
 
 def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
@@ -119,9 +179,9 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
         )
         if robots:
             swarm_band(ax1, run, line.get_color())
-        if _exact_estimates(run) and "rate_exact" in run.metadata.get("theory", {}):
+        rate = _float(run.metadata.get("theory", {}).get("rate_exact"))
+        if _exact_estimates(run) and np.isfinite(rate):
             # with exact estimates the theory gives the rate: draw it over the second half
-            rate = float(run.metadata["theory"]["rate_exact"])
             half = m["t"] >= m["t"][-1] / 2
             t_ref = m["t"][half]
             ax1.semilogy(
@@ -195,8 +255,11 @@ def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:
 
     anim = FuncAnimation(fig, draw, frames=len(frames), blit=False)
     path = out / f"{stem}.gif"
-    anim.save(path, writer=PillowWriter(fps=10))
-    plt.close(fig)
+    try:
+        with atomic_path(path) as tmp:
+            anim.save(tmp, writer=PillowWriter(fps=10))
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -213,13 +276,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for run in runs:
-        missing = {"/fields/p_hat", "/fields/velocity", "/fields/p_target"} - set(run.fields)
-        if missing or "phat_target_l2" not in run.metrics:
-            print(f"error: {run.path} lacks {sorted(missing) or ['/metrics']}", file=sys.stderr)
+        why = problem(run)
+        if why is not None:
+            print(f"error: {run.path}: {why}", file=sys.stderr)
             return 2
     args.out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     single = len(runs) == 1
+    name_runs(runs)
     for run in runs:
         stem = "fig1" if single else f"fig1_{_name(run)}"
         written += figure1(run, args.out, stem)

@@ -22,6 +22,7 @@ and ``component`` for two-component fields), :meth:`RunLog.metrics_xarray` (dim 
 from __future__ import annotations
 
 import json
+import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +34,8 @@ from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import InvalidMagic, StreamReader
+
+from analysis.output import atomic_path
 
 if TYPE_CHECKING:
     import xarray as xr
@@ -111,7 +114,9 @@ class FieldSeries:
 
 @dataclass
 class RunLog:
-    """A decoded run (see the module docstring)."""
+    """A decoded run (see the module docstring); ``recovery`` says what was lost to
+    damage, ``foreign`` which metric values were not finite numbers (read as NaN).
+    """
 
     path: Path
     metadata: dict[str, dict[str, str]]
@@ -120,6 +125,7 @@ class RunLog:
     positions_t: np.ndarray
     positions: list[np.ndarray] = field(repr=False)
     recovery: str | None = None
+    foreign: str | None = None
     poses_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     poses: list[np.ndarray] = field(default_factory=list, repr=False)
 
@@ -146,13 +152,24 @@ class RunLog:
         The metrics keep dim ``t``; field topic ``/fields/NAME`` becomes variable
         ``NAME`` with its own time dim ``t_NAME`` (topics are logged at different
         times: ``p_target`` once) and, for two-component fields, dim
-        ``component_NAME``; all fields share ``y`` and ``x``. The metadata records
+        ``component_NAME``; all fields share ``y`` and ``x`` (a metric named like one of
+        these, as a foreign log may have, is renamed ``metric_KEY``). The metadata records
         become string attributes ``RECORD.KEY`` (``config.yaml``,
         ``provenance.git_commit``, ``status.state``, ...).
         """
         import xarray as xr
 
-        parts: list[xr.Dataset | xr.DataArray] = [self.metrics_xarray()]
+        taken = {"x", "y"}
+        for topic in self.fields:
+            name = topic.removeprefix("/fields/")
+            taken |= {name, f"t_{name}", f"component_{name}"}
+        metrics = {}
+        for key, values in self.metrics.items():
+            new = key
+            while new in taken or (new != key and new in self.metrics):
+                new = f"metric_{new}"  # a foreign metric named like a field or coordinate
+            metrics[new] = values
+        parts: list[xr.Dataset | xr.DataArray] = [metrics_dataset(metrics)]
         for topic in self.fields:
             name = topic.removeprefix("/fields/")
             da = self.field_xarray(topic).rename({"t": f"t_{name}"})
@@ -181,7 +198,8 @@ class RunLog:
         path = Path(path)
         ds = self.to_xarray()
         encoding = {topic.removeprefix("/fields/"): {"dtype": "float32"} for topic in self.fields}
-        ds.to_netcdf(path, engine="scipy", format="NETCDF3_64BIT", encoding=encoding)
+        with atomic_path(path) as tmp:  # an interrupted write leaves the old file
+            ds.to_netcdf(tmp, engine="scipy", format="NETCDF3_64BIT", encoding=encoding)
         return path
 
 
@@ -277,8 +295,11 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     SIGKILL) or damaged part-way yields every complete chunk before the damage:
     the result then has ``recovery`` set, ``state`` ``truncated`` when the status
     record is missing, and a :class:`LogWarning` is issued. Messages on unknown
-    topics or with other schemas are ignored; a message that fails to decode is
-    skipped and counted.
+    topics or with other schemas are ignored; a message that fails to decode, or a
+    metrics message without a finite time, is skipped and counted. A metric value that
+    is not a finite number (``true``, a string, ``1e400``, ``NaN``; ``null`` is the
+    contract's "not applicable") is read as NaN, counted in ``foreign`` and warned
+    about.
 
     Args:
         path: The log or its directory.
@@ -304,6 +325,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     complete, problem, n_messages, n_bad = False, None, 0, 0
+    replaced: dict[str, int] = {}
     with open(path, "rb") as f:
         try:
             reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 30)
@@ -326,7 +348,15 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
                     schema = schemas.get(channel.schema_id)
                     try:
                         n_messages += _take(
-                            record, channel, schema, metric_rows, grids, pos_t, positions, poses
+                            record,
+                            channel,
+                            schema,
+                            metric_rows,
+                            grids,
+                            pos_t,
+                            positions,
+                            replaced,
+                            poses,
                         )
                     except Exception:  # a damaged message: skip it, count it
                         n_bad += 1
@@ -346,6 +376,12 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
             f"{f' ({problem})' if problem else ''}"
         )
         warnings.warn(f"{path}: {recovery}", LogWarning, stacklevel=2)
+    foreign = None
+    if replaced:
+        foreign = "metric values that are not finite numbers, read as NaN: " + ", ".join(
+            f"{key} ({n})" for key, n in sorted(replaced.items())
+        )
+        warnings.warn(f"{path}: {foreign}", LogWarning, stacklevel=2)
     fields = {
         topic: FieldSeries(np.array(g["t"]), np.stack(g["v"]), g["names"], g["o"], g["c"])
         for topic, g in grids.items()
@@ -359,6 +395,7 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
         positions_t=np.array(pos_t),
         positions=positions,
         recovery=recovery,
+        foreign=foreign,
         poses_t=np.array([t for t, _ in poses]),
         poses=[p for _, p in poses],
     )
@@ -374,17 +411,34 @@ def _metric_arrays(rows: list[dict[str, float]]) -> dict[str, np.ndarray]:
     return {k: np.array([row.get(k, np.nan) for row in rows], dtype=float) for k in keys}
 
 
-def _take(record, channel, schema, metric_rows, grids, pos_t, positions, poses) -> bool:
+def _finite(value: object) -> float | None:
+    """``value`` as a float when it is a finite real number (not a bool), else None."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        x = float(value)
+    except OverflowError:  # an integer beyond float range
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _take(record, channel, schema, metric_rows, grids, pos_t, positions, replaced, poses) -> bool:
     """Decode one message of a known topic into the accumulators; False when the
-    topic or schema is not one of the log contract's.
+    topic or schema is not one of the log contract's. Metric values that are not
+    finite numbers (other than ``null``) become NaN, counted by key in ``replaced``.
     """
     t = record.log_time / 1e9
     name = schema.name if schema is not None else ""
     if channel.topic == "/metrics" and channel.message_encoding == "json":
         values = json.loads(record.data)
-        if not isinstance(values, dict) or "t" not in values:
-            raise ValueError("metrics message is not a JSON object with a time")
-        row = {key: np.nan if value is None else float(value) for key, value in values.items()}
+        if not isinstance(values, dict) or _finite(values.get("t")) is None:
+            raise ValueError("metrics message is not a JSON object with a finite time")
+        row = {}
+        for key, value in values.items():
+            x = _finite(value)
+            if x is None and value is not None:
+                replaced[str(key)] = replaced.get(str(key), 0) + 1
+            row[str(key)] = np.nan if x is None else x
         metric_rows.append(row)
     elif channel.topic.startswith("/fields/") and name == "foxglove.Grid":
         values, names, origin, cell = _decode_grid(GridMsg.FromString(record.data))

@@ -70,7 +70,10 @@ def job_peclet(path: Path, at: float | None) -> tuple[object, np.ndarray, float]
     """
     run = load_run(path, topics={"/fields/velocity"})
     flat = flatten(logged_config(run))
-    sigma = float(flat["dynamics.sigma"])
+    raw = flat["dynamics.sigma"]
+    if isinstance(raw, bool) or not isinstance(raw, (int, float, str)):
+        raise ValueError(f"dynamics.sigma={raw!r} is not a number")
+    sigma = float(raw)
     series = run.fields["/fields/velocity"]
     times = np.asarray(series.t, dtype=float)
     if at is None:
@@ -82,6 +85,8 @@ def job_peclet(path: Path, at: float | None) -> tuple[object, np.ndarray, float]
         index = int(later[0])
     dx, dy = series.cell_size
     size = flat.get("grid.n", flat.get("grid.nx", "?"))
+    if not isinstance(size, (int, float, str)):
+        size = repr(size)  # a foreign value: shown as it is
     pe = cell_peclet(series.values[index], (float(dx), float(dy)), sigma)
     return size, pe, float(times[index])
 

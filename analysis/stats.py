@@ -70,6 +70,17 @@ def mean_ci(values: Iterable[Any], level: float = 0.95) -> MeanCI:
     return MeanCI(mean, mean - half, mean + half, n)
 
 
+def _hashable(value: Any) -> Any:
+    """``value`` as a dictionary key: itself when hashable, else its type and ``repr``
+    (a list or mapping in a foreign config).
+    """
+    try:
+        hash(value)
+    except TypeError:
+        return (type(value).__name__, repr(value))
+    return value
+
+
 def aggregate(
     rows: Iterable[Mapping[str, Any]],
     point_keys: Sequence[str],
@@ -92,10 +103,10 @@ def aggregate(
     """
     groups: dict[tuple[Any, ...], list[Mapping[str, Any]]] = {}
     for row in rows:
-        groups.setdefault(tuple(row.get(k) for k in point_keys), []).append(row)
+        groups.setdefault(tuple(_hashable(row.get(k)) for k in point_keys), []).append(row)
     out = []
-    for point, members in groups.items():
-        agg: dict[str, Any] = dict(zip(point_keys, point, strict=True))
+    for members in groups.values():
+        agg: dict[str, Any] = {k: members[0].get(k) for k in point_keys}
         agg["jobs"] = len(members)
         for m in metric_keys:
             ci = mean_ci((r.get(m) for r in members), level)

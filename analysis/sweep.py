@@ -100,6 +100,7 @@ import numpy as np
 
 from analysis.configs import component, flatten, logged_config
 from analysis.load import LogError, LogWarning, load_run
+from analysis.output import atomic_path
 from analysis.plotting import save_figure
 from analysis.stats import aggregate
 
@@ -291,6 +292,37 @@ def mixed(rows: list[dict[str, Any]], primary: list[str]) -> list[str]:
     return out
 
 
+class MetricSeries(dict):
+    """A run's metric arrays, where a metric the log lacks (a foreign or older log) reads
+    as NaN at every time, so the figures draw what there is.
+    """
+
+    def __missing__(self, key: str) -> np.ndarray:
+        return np.full(len(self.get("t", ())), np.nan)
+
+
+def code_of(provenance: dict[str, str]) -> str:
+    """The code a log was made by, from its ``provenance`` record: ``code_sha256`` (the
+    commit, the diff's hash and the package versions), else the commit with ``+dirty``
+    (logs from before the hash was recorded), else ``unknown``.
+    """
+    if provenance.get("code_sha256"):
+        return str(provenance["code_sha256"])[:12]
+    commit = str(provenance.get("git_commit", "unknown"))[:12]
+    return commit + ("+dirty" if provenance.get("git_dirty") == "true" else "")
+
+
+def mixed_code(rows: list[dict[str, Any]]) -> dict[str, int]:
+    """The codes (:func:`code_of`) of the rows with their job counts, when more than one
+    made them (empty otherwise): such logs are not one study.
+    """
+    counts: dict[str, int] = {}
+    for r in rows:
+        if "code" in r:
+            counts[r["code"]] = counts.get(r["code"], 0) + 1
+    return counts if len(counts) > 1 else {}
+
+
 def analyse(
     sweep_dir: Path, tail: float | None = None
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
@@ -319,8 +351,11 @@ def analyse(
         if run.recovery is not None:  # damaged or cut short: say so, whatever its status says
             row["recovery"] = run.recovery
             warnings.warn(f"{log_path}: {run.recovery}", SweepWarning, stacklevel=2)
+        if run.foreign is not None:  # values read as NaN: say so
+            warnings.warn(f"{log_path}: {run.foreign}", SweepWarning, stacklevel=2)
         flat = flatten(logged_config(run))
         row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
+        row["code"] = code_of(run.metadata.get("provenance", {}))
         row["law"] = component(flat, "control")
         theory = run.metadata.get("theory", {})
         row["law_uses"] = theory.get("law_uses", "")
@@ -332,7 +367,7 @@ def analyse(
             row.update(job_stats(run, job_tail))
             steps = len(run.metrics["t"]) - 1
             row["ms_per_step"] = 1e3 * row["wall_s"] / steps
-            series[job_dir.name] = run.metrics
+            series[job_dir.name] = MetricSeries(run.metrics)
         rows.append(row)
     return rows, series
 
@@ -386,7 +421,7 @@ def write_csv(rows: list[dict[str, Any]], path: Path) -> None:
     """Tidy CSV: the varied config keys, the law, then the fixed columns."""
     keys = varied(rows)
     fixed = ["dir", "state", *STATS, "wall_s", "recovery"]
-    with open(path, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=[*keys, "law", *fixed], restval="")
         writer.writeheader()
         for r in rows:
@@ -474,7 +509,7 @@ def write_points(agg: list[dict[str, Any]], path: Path) -> None:
     """``sweep_aggregated.csv``."""
     if not agg:
         return
-    with open(path, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(agg[0]))
         writer.writeheader()
         writer.writerows(agg)
@@ -861,6 +896,11 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help=f"tail fraction of each run (default: the declared one, else {DEFAULT_TAIL})",
     )
+    parser.add_argument(
+        "--mixed-code",
+        action="store_true",
+        help="pool logs made by different code (commit, local changes, package versions)",
+    )
     args = parser.parse_args(argv)
     if not args.sweep_dir.is_dir():
         print(f"error: no sweep directory at {args.sweep_dir}", file=sys.stderr)
@@ -884,6 +924,16 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if not rows:
         print(f"error: no run.mcap below {args.sweep_dir}", file=sys.stderr)
+        return 2
+    codes = mixed_code(rows)
+    if codes and not args.mixed_code:
+        print(
+            f"error: {args.sweep_dir}: the logs were made by different code ("
+            + ", ".join(f"{c}: {n} jobs" for c, n in sorted(codes.items()))
+            + "; rerun the sweep into the same directory to bring every job to the same "
+            "code, or pass --mixed-code)",
+            file=sys.stderr,
+        )
         return 2
     keys = varied(rows)
     usable = [r for r in rows if "phi_tail_sup" in r]

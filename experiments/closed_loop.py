@@ -17,7 +17,36 @@ the same configs from Python.
 from __future__ import annotations
 
 import os
+import signal
 import sys
+
+
+def stop_before_run(signum: int, frame: object) -> None:
+    """SIGTERM or SIGHUP before the run installs its own handlers (while the config is
+    composed and built) stop the program as Ctrl-C does: one line, exit status 130,
+    nothing written.
+    """
+    raise KeyboardInterrupt(f"received {signal.Signals(signum).name} before the run started")
+
+
+def stop_while_loading(signum: int, frame: object) -> None:
+    """SIGINT, SIGTERM or SIGHUP while the modules load: one line, exit status 130 (at
+    once: nothing has been written, and an exception here would print a traceback).
+    """
+    os.write(2, f"interrupted: received {signal.Signals(signum).name} while starting\n".encode())
+    os._exit(130)
+
+
+IGNORED = {
+    s
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    if signal.getsignal(s) is signal.SIG_IGN
+}
+"""Signals ignored when the program started (SIGINT in a background job): left so."""
+
+if __name__ == "__main__":
+    for _sig in {signal.SIGINT, signal.SIGTERM, signal.SIGHUP} - IGNORED:
+        signal.signal(_sig, stop_while_loading)
 from pathlib import Path
 
 import hydra
@@ -63,25 +92,73 @@ def main(cfg: DictConfig) -> None:
     print(f"log: {result.log_path} ({result.log_path.stat().st_size / 1e6:.1f} MB)")
 
 
+def culprit(argv: list[str], err: BaseException) -> str | None:
+    """The command-line override that ``err`` comes from, when one can be told: the
+    first that does not parse on its own, or one whose key is longer than a file name
+    may be (for a ``File name too long`` error); None otherwise.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser = OverridesParser.create()
+    overrides = [a for a in argv if not a.startswith("-")]
+    for arg in overrides:
+        try:
+            parser.parse_overrides([arg])
+        except Exception:  # this one does not parse
+            return arg
+    if isinstance(err, OSError):
+        for arg in overrides:
+            if len(arg.split("=", 1)[0].encode()) > 255:
+                return arg
+    return None
+
+
+def config_error(err: BaseException, argv: list[str]) -> str:
+    """One line for a command line that does not compose, naming the override."""
+    arg = culprit(argv, err)
+    if arg is None:
+        return describe(err, argv)
+    key, _, value = arg.partition("=")
+    cause = err.__cause__ or err
+    text = str(cause).strip().splitlines() or [type(cause).__name__]
+    reason = next((t for t in text if not t.startswith("Error parsing override")), text[0])
+    if isinstance(cause, OSError) and cause.strerror:
+        reason = cause.strerror  # not the long name again
+    shown = value if len(value) <= 60 else f"{value[:40]}... ({len(value)} characters)"
+    if len(key) > 60:
+        key = f"{key[:40]}... ({len(key)} characters)"
+    return f"invalid config: {key}={shown!r}: {reason.strip()[:300]}"
+
+
 if __name__ == "__main__":
     # Hydra's errors come back to us (not as Hydra's report) so that a config that does
-    # not compose is one line and exit status 2, like every other config error.
-    os.environ.setdefault("HYDRA_FULL_ERROR", "1")
+    # not compose is one line and exit status 2, like every other config error; set
+    # whatever the environment says, so the output never depends on it.
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    if signal.SIGINT not in IGNORED:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    for sig in {signal.SIGTERM, signal.SIGHUP} - IGNORED:
+        signal.signal(sig, stop_before_run)
     # A sweep interrupted (SIGINT, SIGTERM, SIGHUP) or whose launcher failed still
     # writes its status table (harness.jobs.finish_sweep) and exits non-zero.
     try:
         main()
     except (HydraException, OmegaConfBaseException) as err:
         finish_sweep(f"{type(err).__name__}")
-        print(describe(err, sys.argv[1:]), file=sys.stderr)
+        print(config_error(err, sys.argv[1:]), file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt as err:
         finish_sweep(str(err) or "KeyboardInterrupt")
         print(f"interrupted: {err}".strip(), file=sys.stderr)
         sys.exit(130)
-    except Exception as err:  # the launcher failed (a worker process lost)
-        if finish_sweep(f"{type(err).__name__}: {err}") is None:
-            raise
+    except Exception as err:  # the launcher failed (a worker process lost), or the parser
+        status = finish_sweep(f"{type(err).__name__}: {err}")
         first = (str(err).strip().splitlines() or [""])[0]
-        print(f"sweep failed: {type(err).__name__}: {first}", file=sys.stderr)
+        if status is not None:
+            print(f"sweep failed: {type(err).__name__}: {first}", file=sys.stderr)
+            sys.exit(1)
+        if culprit(sys.argv[1:], err) is not None:  # an override Hydra could not take
+            print(config_error(err, sys.argv[1:]), file=sys.stderr)
+            sys.exit(2)
+        print(f"failed: {type(err).__name__}: {first}", file=sys.stderr)
         sys.exit(1)

@@ -47,6 +47,10 @@ MIN_BANDWIDTH_CELLS = 0.1
 than a cell is sampled only at cell centres, so its grid integral is no longer 1 and
 its noise constants ``k ~ 1 / h^2``, ``k_g ~ 1 / h^4`` overflow for tiny ``h``."""
 
+STEP_TOLERANCE = 1e-6
+"""``sim.t_final / sim.dt`` may differ from a whole number by this much (in steps: the
+rounding of decimal fractions such as 0.06 / 0.02, never a part of a step)."""
+
 SHARED_BLOCKS = ("grid", "agents", "dynamics", "sim", "kde", "log")
 """Config blocks every run needs."""
 
@@ -126,6 +130,21 @@ class ConfigError(ValueError):
         super().__init__(f"invalid config: {key}={value!r}: {allowed}")
 
 
+def config_line(err: ConfigError) -> str:
+    """The one line to print for ``err``: its text, completed by the reason of the error
+    it was made from when its text stops at a colon (``Error loading 'pkg.Law':``, whose
+    reason, such as the missing module, is on the cause's next lines).
+    """
+    text = str(err)
+    cause = err.__context__
+    while text.endswith(":") and cause is not None:
+        lines = [ln.strip() for ln in str(cause).strip().splitlines() if ln.strip()]
+        if len(lines) > 1:
+            return f"{text} {lines[1]}"
+        cause = cause.__cause__ or cause.__context__
+    return text
+
+
 class ConfigWarning(UserWarning):
     """A config that runs, but a check could not be made."""
 
@@ -182,6 +201,15 @@ def check_shared(cfg: DictConfig) -> None:
         raise ConfigError("sim.dt", dt, f"at most sim.t_final = {t_final}")
     if t_final / dt > MAX_STEPS:
         raise ConfigError("sim.t_final", t_final, f"at most {MAX_STEPS:.0e} steps of sim.dt")
+    steps = t_final / dt
+    if abs(steps - round(steps)) > STEP_TOLERANCE:
+        below, above = math.floor(steps) * dt, math.ceil(steps) * dt
+        raise ConfigError(
+            "sim.t_final",
+            t_final,
+            f"a whole number of steps of sim.dt = {dt:g} s (it is {steps:.6g} steps; "
+            f"{below:.6g} or {above:.6g} s would end exactly there)",
+        )
     # Euler-Maruyama with reflection: a noise step must be well inside the domain
     if math.sqrt(2 * sigma * dt) > length / 10:
         raise ConfigError(
@@ -262,26 +290,109 @@ def check_unread(cfg: DictConfig) -> None:
         )
 
 
-def memory_available() -> tuple[int, str] | None:
-    """Bytes this process may still allocate, and where the figure comes from:
-    ``MemAvailable`` of ``/proc/meminfo``, lowered to the cgroup's ``memory.max`` minus
-    ``memory.current`` when that is smaller; None when neither can be read.
+UNLIMITED = 1 << 60
+"""A memory limit at least this large (bytes) is no limit (cgroup v1 writes
+``9223372036854771712`` for none)."""
+
+
+def memory_available(root: Path = Path("/")) -> tuple[int, str] | None:
+    """Bytes this process may still allocate, and where the figure comes from: the
+    smallest of ``MemAvailable`` of ``/proc/meminfo``, the room left at every level of
+    the process's cgroup (v2: ``memory.max - memory.current``; v1:
+    ``memory.limit_in_bytes - memory.usage_in_bytes``; from its own group up to the
+    root, so a limit set on a parent, as SLURM and systemd scopes do, counts) and the
+    address space left under ``RLIMIT_AS``; None when none can be read.
+
+    Args:
+        root: The file system root to read ``/proc`` and ``/sys/fs/cgroup`` under
+            (tests give a directory of their own).
     """
     found: list[tuple[int, str]] = []
     try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
+        for line in (root / "proc/meminfo").read_text().splitlines():
             if line.startswith("MemAvailable:"):
                 found.append((int(line.split()[1]) * 1024, "MemAvailable in /proc/meminfo"))
     except (OSError, ValueError, IndexError):
         pass
-    try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        used = Path("/sys/fs/cgroup/memory.current").read_text().strip()
-        if limit != "max":
-            found.append((int(limit) - int(used), "the cgroup's memory.max"))
-    except (OSError, ValueError):
-        pass
+    found += _cgroup_room(root)
+    if root == Path("/"):
+        found += _rlimit_room(root)
     return min(found) if found else None
+
+
+def _cgroup_room(root: Path) -> list[tuple[int, str]]:
+    """``(bytes left, file)`` at every level of this process's cgroups that has a limit
+    (v2 and v1 memory controllers).
+    """
+    try:
+        lines = (root / "proc/self/cgroup").read_text().splitlines()
+    except OSError:
+        lines = []
+    groups: list[tuple[Path, str, str]] = []  # (mount, limit file, usage file) per hierarchy
+    paths: list[tuple[Path, str]] = []
+    for line in lines:
+        parts = line.split(":", 2)
+        if len(parts) != 3:
+            continue
+        _, controllers, rel = parts
+        if controllers == "":  # v2
+            groups.append((root / "sys/fs/cgroup", "memory.max", "memory.current"))
+            groups.append((root / "sys/fs/cgroup/unified", "memory.max", "memory.current"))
+            paths += [(root / "sys/fs/cgroup", rel), (root / "sys/fs/cgroup/unified", rel)]
+        elif "memory" in controllers.split(","):  # v1
+            mount = root / "sys/fs/cgroup/memory"
+            paths.append((mount, rel))
+            groups.append((mount, "memory.limit_in_bytes", "memory.usage_in_bytes"))
+    if not lines:  # no /proc/self/cgroup: the root groups only
+        paths = [(root / "sys/fs/cgroup", "/"), (root / "sys/fs/cgroup/memory", "/")]
+        groups = [
+            (root / "sys/fs/cgroup", "memory.max", "memory.current"),
+            (root / "sys/fs/cgroup/memory", "memory.limit_in_bytes", "memory.usage_in_bytes"),
+        ]
+    found: list[tuple[int, str]] = []
+    seen: set[Path] = set()
+    for mount, rel in paths:
+        names = [(lim, use) for m, lim, use in groups if m == mount]
+        level = mount / rel.strip("/")
+        while True:
+            for limit_name, usage_name in names:
+                limit_file = level / limit_name
+                if limit_file in seen:
+                    continue
+                seen.add(limit_file)
+                try:
+                    text = limit_file.read_text().strip()
+                    if text == "max" or int(text) >= UNLIMITED:
+                        continue
+                    used = int((level / usage_name).read_text().strip())
+                except (OSError, ValueError):
+                    continue
+                shown = "/" / limit_file.relative_to(root)
+                found.append((int(text) - used, f"the cgroup limit {shown}"))
+            if level == mount or mount not in level.parents:
+                break
+            level = level.parent
+    return found
+
+
+def _rlimit_room(root: Path) -> list[tuple[int, str]]:
+    """The address space left under ``RLIMIT_AS`` (its soft limit minus ``VmSize``)."""
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    except (ImportError, OSError, ValueError):
+        return []
+    if soft == resource.RLIM_INFINITY or soft >= UNLIMITED:
+        return []
+    used = 0
+    try:
+        for line in (root / "proc/self/status").read_text().splitlines():
+            if line.startswith("VmSize:"):
+                used = int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return [(soft - used, "RLIMIT_AS, the address space ulimit -v allows")]
 
 
 def _size(nbytes: float) -> str:
@@ -414,6 +525,9 @@ def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
     try:
         p = density.on_grid(grid)
     except (ValueError, TypeError) as err:
+        name, _, why = str(err).partition(": ")
+        if why and name.isidentifier() and hasattr(density, name):  # a parameter's refusal
+            raise ConfigError(f"{key}.{name}", getattr(density, name), why) from None
         raise ConfigError(key, density, str(err)) from None
     require_density = bool(np.isfinite(p).all()) and abs(grid.integrate(p) - 1.0) < 1e-9
     if not require_density:
@@ -462,6 +576,17 @@ def check_built(
         return
     rate = getattr(control, "feedback_diffusivity", None)
     diffusivity = rate(target.p) if rate is not None else None
+    if diffusivity is not None and not (
+        isinstance(diffusivity, (int, float, np.floating, np.integer))
+        and math.isfinite(float(diffusivity))
+        and float(diffusivity) >= 0
+    ):
+        raise ConfigError(
+            "control",
+            type(control).__name__,
+            f"a law whose feedback_diffusivity near the target is a finite number >= 0 "
+            f"(it gives {diffusivity!r}: the sampled-data step bound cannot be checked)",
+        )
     if diffusivity is None:
         warnings.warn(
             f"{type(control).__name__} gives no feedback diffusivity: the sampled-data "
@@ -472,7 +597,7 @@ def check_built(
         return
     own = getattr(control, "resolution", None)
     h = own if isinstance(own, float) else resolution(plant, estimator)
-    bound = sampled_data_dt_bound(grid, diffusivity, h, cfg.dynamics.sigma)
+    bound = sampled_data_dt_bound(grid, float(diffusivity), h, cfg.dynamics.sigma)
     if cfg.sim.dt > bound:
         scale = "grid resolution" if h is None else f"resolution {h:g}"
         raise ConfigError(
@@ -507,6 +632,7 @@ __all__ = [
     "check_resolvable",
     "check_shared",
     "check_unread",
+    "config_line",
     "density_on_grid",
     "describe",
     "target_on_grid",

@@ -203,7 +203,19 @@ class GaussianMixture:
         return (1 - self.floor) * m + self.floor / grid.area
 
     def on_grid(self, grid: Grid) -> np.ndarray:
-        """Mixture at the cell centres normalised on the grid, plus the floor."""
+        """Mixture at the cell centres normalised on the grid, plus the floor.
+
+        Raises:
+            ValueError: for a bump centred outside the domain (its weight would be lost
+                in the normalisation, without a word).
+        """
+        for k, (mx, my) in enumerate(self.means):
+            if not (grid.x0 <= mx <= grid.x1 and grid.y0 <= my <= grid.y1):
+                raise ValueError(
+                    f"means: every bump centred inside the domain [{grid.x0:g}, {grid.x1:g}]"
+                    f" x [{grid.y0:g}, {grid.y1:g}] (bump {k} at ({mx:g}, {my:g}) is not; "
+                    "its weight would be lost in the normalisation)"
+                )
         x, y = grid.mesh
         m = grid.normalise(self.mixture(x, y))
         return (1 - self.floor) * m + self.floor / grid.area

@@ -1,11 +1,13 @@
 """What identifies a run in its log: the resolved config, its hash and the provenance.
 
-:func:`config_hash` decides whether a sweep's job is done already (:mod:`harness.jobs`);
-:func:`provenance` says which code, packages and machine made the log.
+:func:`config_hash` and :func:`code_identity` decide together whether a sweep's job is
+done already (:mod:`harness.jobs`): a log counts only for the same config computed by
+the same code; :func:`provenance` says which code, packages and machine made the log.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt_
 import hashlib
 import importlib.metadata
@@ -110,31 +112,102 @@ def _without(data: dict, paths: list[list[str]]) -> dict:
     return out
 
 
-def provenance(seed: int) -> dict[str, str]:
-    """Git commit and dirty flag, package versions, Python, seed, host, start time."""
-    root = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[1]
+"""The source tree (or installation) of the ``harness`` package."""
 
-    def git(*args: str) -> str:
-        try:
-            out = subprocess.run(
-                ["git", *args], cwd=root, capture_output=True, text=True, timeout=10
-            )
-            return out.stdout.strip() if out.returncode == 0 else "unknown"
-        except (OSError, subprocess.SubprocessError):
-            return "unknown"
+CODE_SUFFIXES = (".py", ".yaml", ".c", ".h", ".toml", ".cfg")
+"""Files that are code or configuration: untracked ones count in the diff's hash."""
 
-    status = git("status", "--porcelain")
-    info = {
-        "git_commit": git("rev-parse", "HEAD"),
-        "git_dirty": "unknown" if status == "unknown" else str(bool(status)).lower(),
-        "python": sys.version.split()[0],
-        "seed": str(seed),
-        "host": platform.node(),
-        "start_time_utc": dt_.datetime.now(dt_.UTC).isoformat(timespec="seconds"),
-    }
+
+def _git(*args: str, text: bool = True) -> Any:
+    """Output of a git command in :data:`ROOT` (``"unknown"`` when git fails)."""
+    try:
+        out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=text, timeout=30)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if out.returncode != 0:
+        return "unknown"
+    return out.stdout.strip() if text else out.stdout
+
+
+def _source_sha256() -> str:
+    """SHA-256 of the code and config files of the installed packages (``harness``,
+    ``analysis``, ``experiments``, ``conf``): the code's identity when git cannot say.
+    """
+    digest = hashlib.sha256()
+    for folder in ("harness", "analysis", "experiments", "conf"):
+        base = ROOT / folder
+        if not base.is_dir():
+            continue
+        for path in sorted(base.rglob("*")):
+            if path.suffix in CODE_SUFFIXES and path.is_file():
+                digest.update(str(path.relative_to(ROOT)).encode() + b"\0")
+                digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def code_identity() -> dict[str, str]:
+    """What identifies the code a run computes with: the git commit, the dirty flag,
+    ``git_diff_sha256`` (SHA-256 of ``git diff HEAD`` and of the untracked code and
+    config files; ``clean`` when there are none), the versions of Python and of
+    :data:`PACKAGES`, and ``code_sha256``, the hash of all of these. Without git (an
+    installed package) the diff's hash is the hash of the package's own source files.
+    """
+    info = {"git_commit": _git("rev-parse", "HEAD")}
+    status = _git("status", "--porcelain")
+    info["git_dirty"] = "unknown" if status == "unknown" else str(bool(status)).lower()
+    if info["git_commit"] == "unknown":
+        info["git_diff_sha256"] = f"source:{_source_sha256()}"
+    elif info["git_dirty"] == "false":
+        info["git_diff_sha256"] = "clean"
+    else:
+        digest = hashlib.sha256()
+        diff = _git("diff", "HEAD", "--binary", text=False)
+        digest.update(diff if isinstance(diff, bytes) else str(diff).encode())
+        others = _git("ls-files", "--others", "--exclude-standard", "-z", text=False)
+        names = others.split(b"\0") if isinstance(others, bytes) else []
+        for entry in sorted(n for n in names if n):
+            path = ROOT / entry.decode(errors="surrogateescape")
+            if path.suffix in CODE_SUFFIXES and path.is_file():
+                digest.update(entry + b"\0")
+                with contextlib.suppress(OSError):
+                    digest.update(path.read_bytes())
+        info["git_diff_sha256"] = digest.hexdigest()
+    info["python"] = sys.version.split()[0]
     for name in PACKAGES:
         try:
             info[f"version_{name}"] = importlib.metadata.version(name)
         except importlib.metadata.PackageNotFoundError:
             info[f"version_{name}"] = "not installed"
+    text = json.dumps(info, sort_keys=True, separators=(",", ":"))
+    info["code_sha256"] = hashlib.sha256(text.encode()).hexdigest()
     return info
+
+
+def code_change(logged: dict[str, str], now: dict[str, str]) -> str:
+    """What differs between the code identity of a log (its ``provenance`` record) and
+    ``now`` (:func:`code_identity`), in words; empty when the code is the same.
+    """
+    if logged.get("code_sha256") == now["code_sha256"]:
+        return ""
+    if "code_sha256" not in logged:
+        return "the log does not record its code (code_sha256)"
+    changed = [
+        f"{key} {str(logged.get(key, 'absent'))[:12]} -> {str(value)[:12]}"
+        for key, value in now.items()
+        if key != "code_sha256" and logged.get(key) != value
+    ]
+    return "the code changed (" + ("; ".join(changed) or "code_sha256") + ")"
+
+
+def provenance(seed: int) -> dict[str, str]:
+    """The code's identity (:func:`code_identity`: git commit, dirty flag, the diff's
+    hash, package versions and their hash ``code_sha256``), Python, seed, host, start
+    time.
+    """
+    return {
+        **code_identity(),
+        "seed": str(seed),
+        "host": platform.node(),
+        "start_time_utc": dt_.datetime.now(dt_.UTC).isoformat(timespec="seconds"),
+    }

@@ -6,8 +6,11 @@ Hydra cannot resume a sweep. Each job of a multirun therefore
 * skips itself only when its directory holds a ``run.mcap`` that is complete, reads
   back whole (chunk CRCs checked, the message count equal to the summary's), has
   status ``completed``, and whose ``provenance`` record's ``config_sha256`` equals the
-  hash of the job's resolved config (:func:`config_hash`); otherwise it runs again and its
-  ``job_status.json`` says why (``rerun_reason``). A complete log of another config is
+  hash of the job's resolved config (:func:`config_hash`) and its ``code_sha256`` the
+  code's (:func:`~harness.identity.code_identity`: commit, the diff's hash, package
+  versions); otherwise it runs again and its ``job_status.json`` and the table say why
+  (``rerun_reason``). A log is replaced only when it is a verified copy of what the
+  rerun writes (same config and code, unfinished or not ``completed``); any other is
   moved aside (``run.previous-K.mcap``), never overwritten;
 * runs in a process of its own (forked from the launcher's worker, which only waits),
   so a job killed by the kernel's out-of-memory killer or by hand costs only itself:
@@ -33,10 +36,13 @@ system or holding a path separator is shortened and made unique with a hash.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import csv
 import hashlib
+import io
 import json
+import logging
 import multiprocessing
 import os
 import signal
@@ -44,7 +50,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -56,8 +62,9 @@ from mcap.stream_reader import StreamReader
 from omegaconf import DictConfig, OmegaConf
 
 from harness.build import Experiment, build
-from harness.checks import ConfigError, check_disk
-from harness.identity import config_hash
+from harness.checks import ConfigError, check_disk, config_line
+from harness.components import ParameterError
+from harness.identity import code_change, code_identity, config_hash
 from harness.mcap_log import LOG_FILE
 from harness.run import RunResult, Terminated, run
 
@@ -92,8 +99,8 @@ class LogCheck:
     """What :func:`verify_log` found: ``complete`` (a summary and a footer), ``intact``
     (every record read back with valid CRCs and the summary's message count),
     ``state`` (of the status record), ``config_hash`` (``config_sha256`` of the
-    provenance record) and ``problem``
-    (why it cannot be trusted, empty when it can).
+    provenance record), ``problem`` (why it cannot be trusted, empty when it can) and
+    ``provenance`` (the record, empty when not read).
     """
 
     complete: bool
@@ -101,6 +108,7 @@ class LogCheck:
     state: str | None
     config_hash: str | None
     problem: str
+    provenance: dict[str, str] = field(default_factory=dict)
 
 
 def verify_log(path: Path) -> LogCheck:
@@ -109,15 +117,21 @@ def verify_log(path: Path) -> LogCheck:
     """
     if not path.is_file():
         return LogCheck(False, False, None, None, "no log")
+    prov: dict[str, str]
     try:
         with open(path, "rb") as f:
             summary = make_reader(f).get_summary()
     except Exception as err:
-        return LogCheck(False, False, None, None, f"unfinished or unreadable ({err})")
+        prov = _scan_provenance(path)
+        problem = f"unfinished or unreadable ({err})"
+        return LogCheck(False, False, None, prov.get("config_sha256"), problem, prov)
     if summary is None or summary.statistics is None:
-        return LogCheck(False, False, None, None, "unfinished (no summary)")
+        prov = _scan_provenance(path)
+        problem = "unfinished (no summary)"
+        return LogCheck(False, False, None, prov.get("config_sha256"), problem, prov)
     expected = summary.statistics.message_count
     state, digest, count = None, None, 0
+    prov = {}
     try:
         with open(path, "rb") as f:
             for record in StreamReader(f, validate_crcs=True, record_size_limit=1 << 30).records:
@@ -126,30 +140,54 @@ def verify_log(path: Path) -> LogCheck:
                 elif isinstance(record, Metadata) and record.name == "status":
                     state = record.metadata.get("state")
                 elif isinstance(record, Metadata) and record.name == "provenance":
-                    digest = record.metadata.get("config_sha256")
+                    prov = dict(record.metadata)
+                    digest = prov.get("config_sha256")
     except Exception as err:
-        return LogCheck(True, False, state, digest, f"damaged ({type(err).__name__}: {err})")
+        problem = f"damaged ({type(err).__name__}: {err})"
+        return LogCheck(True, False, state, digest, problem, prov)
     if count != expected:
         problem = f"damaged ({count} messages read, the summary says {expected})"
-        return LogCheck(True, False, state, digest, problem)
-    return LogCheck(True, True, state, digest, "")
+        return LogCheck(True, False, state, digest, problem, prov)
+    return LogCheck(True, True, state, digest, "", prov)
+
+
+def _scan_provenance(path: Path) -> dict[str, str]:
+    """The ``provenance`` record of a log read from its start as far as it reads (an
+    unfinished log has it near its start); empty when not found.
+    """
+    try:
+        with open(path, "rb") as f:
+            for record in StreamReader(f, validate_crcs=True, record_size_limit=1 << 30).records:
+                if isinstance(record, Metadata) and record.name == "provenance":
+                    return dict(record.metadata)
+    except Exception:  # unfinished or damaged from here on
+        pass
+    return {}
 
 
 def log_state(path: Path) -> str | None:
     """The ``status`` record's state of a finished log, None when the file is missing,
     unfinished (no summary) or unreadable. Reads only the summary section.
     """
+    return log_status(path)[0]
+
+
+def log_status(path: Path) -> tuple[str | None, str]:
+    """The ``status`` record's state and reason of a finished log; ``(None, "")`` when
+    the file is missing, not a regular file, unfinished (no summary) or unreadable.
+    Reads only the summary section.
+    """
     if not path.is_file():
-        return None
+        return None, ""
     try:
         with open(path, "rb") as f:
             reader = make_reader(f)
             for record in reader.iter_metadata():
                 if record.name == "status":
-                    return record.metadata.get("state")
+                    return record.metadata.get("state"), record.metadata.get("reason", "")
     except Exception:  # unfinished or damaged: not completed
-        return None
-    return None
+        return None, ""
+    return None, ""
 
 
 def read_status(job_dir: Path) -> dict[str, Any]:
@@ -161,13 +199,54 @@ def read_status(job_dir: Path) -> dict[str, Any]:
         return {}
 
 
-def write_status(job_dir: Path, **fields: Any) -> None:
-    """Merge ``fields`` into the job's ``job_status.json`` (atomic replace)."""
+STATUS_BYTES = 4096
+"""Size a ``job_status.json`` is padded to (trailing blanks, which JSON ignores), so a
+later status fits in the blocks it holds when the disk is full."""
+
+
+def write_status(job_dir: Path, **fields: Any) -> bool:
+    """Merge ``fields`` into the job's ``job_status.json``: an atomic replace, or, when
+    the disk is full, a rewrite in place of the blocks the file already holds (it is
+    padded to :data:`STATUS_BYTES`). Never raises: a status that cannot be written at
+    all is said in one line on standard error.
+
+    Returns:
+        Whether the status was written.
+    """
     data = read_status(job_dir)
     data.update(fields)
-    tmp = job_dir / f"{STATUS_FILE}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True, default=str))
-    tmp.replace(job_dir / STATUS_FILE)
+    text = json.dumps(data, indent=1, sort_keys=True, default=str).encode()
+    return write_file(job_dir / STATUS_FILE, text.ljust(STATUS_BYTES) + b"\n", "job status")
+
+
+def write_file(path: Path, data: bytes, what: str) -> bool:
+    """Write ``data`` to ``path`` atomically (a temporary file replaces it), else, when
+    that fails (a full disk), over the old file in place if ``data`` fits in it (padded
+    with blanks); never leaves a temporary file and never raises: a file that cannot be
+    written is said in one line on standard error.
+
+    Returns:
+        Whether the file holds ``data``.
+    """
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_bytes(data)
+        tmp.replace(path)
+        return True
+    except OSError as err:
+        first = err
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+    try:
+        size = path.stat().st_size
+        if len(data) <= size:
+            with open(path, "r+b") as f:
+                f.write(data.rstrip().ljust(size - 1) + b"\n")
+            return True
+    except OSError:
+        pass
+    print(f"cannot write the {what} {path}: {first.strerror or first}", file=sys.stderr)
+    return False
 
 
 def _int(x: Any, default: int) -> int:
@@ -180,9 +259,9 @@ def _number(x: Any) -> float:
 
 def collect(sweep_dir: Path) -> list[dict[str, Any]]:
     """One row per job directory below ``sweep_dir`` (job, dir, overrides, state, runs,
-    wall_s, reason). A job still marked ``running`` when the sweep is over was killed;
-    a log whose status disagrees with the job's file wins; malformed status files are
-    read as far as they make sense.
+    wall_s, reason, rerun_reason: why its last run was not skipped). A job still marked
+    ``running`` when the sweep is over was killed; a log whose status disagrees with the
+    job's file wins; malformed status files are read as far as they make sense.
     """
     rows = []
     dirs = {p.parent for p in sweep_dir.glob(f"*/{STATUS_FILE}")}
@@ -193,11 +272,18 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
         reason = str(status.get("reason", "") or "")
         if not status:
             reason = "job_status.json missing or unreadable"
-        logged = log_state(job_dir / LOG_FILE)
+        logged, logged_reason = log_status(job_dir / LOG_FILE)
         if state == "running":
             pid = _int(status.get("pid"), 0)
-            if not (pid and _alive(pid)):
+            if pid and _alive(pid):
+                pass
+            elif logged is not None:  # its status could not be written, its log's could
+                state, reason = logged, logged_reason or reason
+            else:
                 state, reason = "killed", reason or "the job's process ended without a status"
+        elif state == "completed" and logged is None:
+            state = "missing"
+            reason = "the job's status says completed, but its run.mcap is missing or unreadable"
         elif logged is not None and state in ("completed", "missing") and logged != state:
             state = logged
         overrides = status.get("overrides", [])
@@ -212,6 +298,7 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
                 "runs": _int(status.get("runs"), 0),
                 "wall_s": _number(status.get("wall_s")),
                 "reason": reason,
+                "rerun_reason": str(status.get("rerun_reason", "") or ""),
             }
         )
     rows.sort(key=lambda r: (_int(r["job"], -1) % (10**9 + 1), str(r["dir"])))
@@ -221,30 +308,47 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
 def format_table(rows: list[dict[str, Any]]) -> str:
     """Markdown table of the rows."""
     lines = [
-        "| job | overrides | state | runs | wall time (s) | reason |",
-        "|---|---|---|---|---|---|",
+        "| job | overrides | state | runs | wall time (s) | reason | rerun because |",
+        "|---|---|---|---|---|---|---|",
     ]
+
+    def cell(text: Any) -> str:
+        return str(text or "").replace("|", "/").replace("\n", " ")[:200]
+
     for r in rows:
         wall = r["wall_s"]
         wall_text = f"{wall:.1f}" if isinstance(wall, (int, float)) else str(wall)
-        reason = str(r.get("reason", "")).replace("|", "/").replace("\n", " ")[:200]
         lines.append(
             f"| {r['job']} | {r['overrides']} | {r['state']} | {r['runs']} | {wall_text} "
-            f"| {reason} |"
+            f"| {cell(r.get('reason'))} | {cell(r.get('rerun_reason') if r['runs'] > 1 else '')} |"
         )
     return "\n".join(lines)
 
 
-def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> None:
-    """``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory."""
-    sweep_dir.mkdir(parents=True, exist_ok=True)
-    with open(sweep_dir / "sweep_status.csv", "w", newline="") as f:
-        writer = csv.DictWriter(
-            f, fieldnames=["job", "dir", "overrides", "state", "runs", "wall_s", "reason"]
-        )
-        writer.writeheader()
-        writer.writerows(rows)
-    (sweep_dir / "sweep_status.md").write_text(format_table(rows) + "\n")
+def write_table(sweep_dir: Path, rows: list[dict[str, Any]]) -> bool:
+    """``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory, each written
+    atomically (:func:`write_file`: a full disk leaves the old table whole, and says so
+    in one line).
+
+    Returns:
+        Whether both were written.
+    """
+    buffer = io.StringIO()
+    writer = csv.DictWriter(
+        buffer,
+        fieldnames=["job", "dir", "overrides", "state", "runs", "wall_s", "reason", "rerun_reason"],
+        extrasaction="ignore",
+    )
+    writer.writeheader()
+    writer.writerows(rows)
+    try:
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        print(f"cannot write the sweep table into {sweep_dir}: {err.strerror}", file=sys.stderr)
+        return False
+    done = write_file(sweep_dir / "sweep_status.csv", buffer.getvalue().encode(), "sweep table")
+    md = (format_table(rows) + "\n").encode()
+    return write_file(sweep_dir / "sweep_status.md", md, "sweep table") and done
 
 
 def _alive(pid: int) -> bool:
@@ -320,10 +424,10 @@ def finish_sweep(reason: str = "") -> int | None:
 
 def _report(sweep_dir: Path, interrupted: str = "") -> int:
     rows = collect(sweep_dir)
-    write_table(sweep_dir, rows)
     _ACTIVE["written"] = True
     print(f"\nsweep {sweep_dir}: {len(rows)} jobs")
-    print(format_table(rows))
+    print(format_table(rows), flush=True)
+    write_table(sweep_dir, rows)
     bad = [r for r in rows if r["state"] != "completed"]
     if interrupted:
         print(f"sweep interrupted: {interrupted}", file=sys.stderr)
@@ -346,8 +450,15 @@ class SweepStatusCallback(Callback):
     """
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Remember the sweep and take over SIGINT, SIGTERM and SIGHUP."""
+        """Check that the sweep directory can be created and written (one line and exit
+        status 2 otherwise), remember the sweep and take over SIGINT, SIGTERM and SIGHUP.
+        """
         _ACTIVE.clear()
+        try:
+            usable_dir("hydra.sweep.dir", Path(str(config.hydra.sweep.dir)))
+        except ConfigError as err:
+            print(err, file=sys.stderr)
+            sys.exit(2)
         _ACTIVE["dir"] = str(config.hydra.sweep.dir)
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -373,29 +484,172 @@ def checked(cfg: DictConfig) -> DictConfig | Experiment:
 
 
 class CheckCallback(Callback):
-    """Checks a single run's config (by building it), that its directory holds no log
-    yet and that the disk has room for the log, before Hydra creates the output
-    directory; a refused value prints its one line and exits with status 2. The build
-    is handed on to the run (:func:`checked`).
+    """Checks a single run's config (by building it), that its directory can be created
+    and holds no log yet, that no other run is using it, and that the disk has room for
+    the log, before Hydra writes anything into it; a refused value (or anything else
+    this check raises) prints its one line and exits with status 2. The build is
+    handed on to the run (:func:`checked`), and the directory stays claimed
+    (:func:`claim_run_dir`) until the process ends.
     """
 
     def on_run_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Build the run to check it; nothing is written."""
+        """Build the run to check it, then claim its directory."""
         _CHECKED.clear()
         try:
-            parts = build(config)
+            with quiet_hydra_utils():
+                parts = build(config)
             out = Path(str(config.hydra.run.dir))
-            if (out / LOG_FILE).exists():
+            check_dir_name("hydra.run.dir", out)
+            if (out / LOG_FILE).exists() or (out / LOG_FILE).is_symlink():
                 raise ConfigError(
                     "hydra.run.dir",
                     str(out),
                     "a directory without a run.mcap (it holds one already: not overwritten)",
                 )
             check_disk(parts.disk, out)
+            probe_observers(parts)
+            claim_run_dir(out)
         except ConfigError as err:
-            print(err, file=sys.stderr)
+            print(config_line(err), file=sys.stderr)
+            sys.exit(2)
+        except Exception as err:  # Hydra would turn it into a warning and run on
+            print(f"cannot start: {one_line(err)}", file=sys.stderr)
             sys.exit(2)
         _CHECKED[config_hash(config)] = parts
+
+
+@contextlib.contextmanager
+def quiet_hydra_utils() -> Iterator[None]:
+    """Silence the logger of ``hydra.utils``, which writes the reason an object cannot
+    be loaded to standard output; the refusal says it on standard error instead.
+    """
+    logger = logging.getLogger("hydra.utils")
+    before = logger.disabled
+    logger.disabled = True
+    try:
+        yield
+    finally:
+        logger.disabled = before
+
+
+def probe_observers(exp: Experiment) -> None:
+    """Ask every observer that can (``probe()``: the live view's address and port)
+    whether it will start, before anything is written.
+
+    Raises:
+        ConfigError: naming the public key of the refused parameter.
+    """
+    for name, observer in exp.observers.items():
+        probe = getattr(observer, "probe", None)
+        if probe is None:
+            continue
+        try:
+            probe()
+        except ParameterError as err:
+            key = exp.keys.get(f"observers.{name}.{err.name}", f"observers.{name}.{err.name}")
+            raise ConfigError(key, err.value, err.allowed) from None
+
+
+def one_line(err: BaseException) -> str:
+    """``Type: first line of the message`` of an exception."""
+    text = (str(err).strip().splitlines() or [""])[0]
+    return f"{type(err).__name__}: {text}" if text else type(err).__name__
+
+
+def check_dir_name(key: str, path: Path) -> None:
+    """Refuse a directory path with a name too long for a file system (255 bytes) or a
+    NUL byte, before anything is created.
+
+    Raises:
+        ConfigError: naming ``key``.
+    """
+    for part in Path(path).parts:
+        if "\0" in part or len(part.encode(errors="surrogateescape")) > 255:
+            raise ConfigError(
+                key, str(path)[:80] + "...", "a path whose names are at most 255 bytes"
+            )
+
+
+def usable_dir(key: str, path: Path) -> None:
+    """Create ``path`` (with its parents) and check that a file can be created in it.
+
+    Raises:
+        ConfigError: naming ``key``, for a name too long, a path under a file, a device
+            (``/dev/null``), or a read-only or full file system.
+    """
+    check_dir_name(key, path)
+    probe = path / f".probe.{os.getpid()}"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if not path.is_dir():
+            raise NotADirectoryError(20, "not a directory", str(path))
+        probe.touch()
+        probe.unlink()
+    except OSError as err:
+        raise ConfigError(
+            key, str(path), f"a directory that can be created and written ({err.strerror})"
+        ) from None
+
+
+RUN_LOCK = ".run.lock"
+"""The file (holding the process id) by which a single run claims its directory."""
+
+
+def claim_run_dir(out: Path) -> None:
+    """Create ``out`` and claim it for this process: ``.run.lock`` created exclusively
+    (a lock left by a process that is gone is taken over) and removed when the process
+    ends; the run's log is created exclusively too (:class:`harness.run.run`).
+
+    Raises:
+        ConfigError: for a directory that cannot be created or written (a path under a
+            file, a read-only file system, ``/dev/null``), or one another running
+            process has claimed.
+    """
+    lock = out / RUN_LOCK
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if not out.is_dir():
+            raise NotADirectoryError(20, "not a directory", str(out))
+        while True:
+            try:
+                fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                break
+            except FileExistsError:
+                holder = _lock_holder(lock)
+                if holder and holder != os.getpid() and _alive(holder):
+                    raise ConfigError(
+                        "hydra.run.dir",
+                        str(out),
+                        f"a directory no other run is using (process {holder} runs there)",
+                    ) from None
+                with contextlib.suppress(FileNotFoundError):
+                    lock.unlink()  # stale: its process is gone
+        try:
+            os.write(fd, str(os.getpid()).encode())
+        finally:
+            os.close(fd)
+    except OSError as err:
+        raise ConfigError(
+            "hydra.run.dir",
+            str(out),
+            f"a directory that can be created and written ({err.strerror})",
+        ) from None
+    atexit.register(_release, lock, os.getpid())
+
+
+def _lock_holder(lock: Path) -> int:
+    """The process id in a lock file (0 when unreadable)."""
+    try:
+        return int(lock.read_text().strip() or "0")
+    except (OSError, ValueError):
+        return 0
+
+
+def _release(lock: Path, pid: int) -> None:
+    """Remove ``lock`` if process ``pid`` (this one, not a forked child) holds it."""
+    if os.getpid() == pid and _lock_holder(lock) == pid:
+        with contextlib.suppress(OSError):
+            lock.unlink()
 
 
 @contextlib.contextmanager
@@ -420,7 +674,8 @@ def _claim(out: Path) -> Iterator[None]:
             with contextlib.suppress(OSError):
                 lock.unlink()  # stale: its process is gone
     try:
-        os.write(fd, str(os.getpid()).encode())
+        with contextlib.suppress(OSError):  # a full disk: the lock exists, unnamed
+            os.write(fd, str(os.getpid()).encode())
         os.close(fd)
         yield
     finally:
@@ -452,7 +707,7 @@ def _child(out: Path) -> None:
     # one core per job: the sweep runs a job per core, so the compiled loops stay serial
     numba.set_num_threads(1)
     try:
-        result = run(_PENDING.pop(), out, overwrite=True)
+        result = run(_PENDING.pop(), out)
     except (KeyboardInterrupt, Terminated) as err:
         write_status(out, state="aborted", reason=f"interrupted: {err}".strip(), pid=0)
         os._exit(3)
@@ -501,29 +756,38 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
     """
     out.mkdir(parents=True, exist_ok=True)
     digest = config_hash(cfg)
+    now_code = code_identity()
     ident = {"job": job, "overrides": overrides, "config_sha256": digest}
     with _claim(out):
         log = out / LOG_FILE
         check = verify_log(log)
-        if check.intact and check.state == "completed" and check.config_hash == digest:
-            write_status(out, state="completed", reason="", **ident)
+        same_config = check.config_hash == digest
+        changed = code_change(check.provenance, now_code) if check.provenance else ""
+        if check.intact and check.state == "completed" and same_config and not changed:
+            write_status(out, state="completed", reason="", rerun_reason="", **ident)
             print(f"job {job}: already completed, skipped ({out})")
             return None
         if not check.intact:
             why = check.problem
-        elif check.config_hash != digest:
+        elif not same_config:
             why = "the log holds another config"
+        elif changed:
+            why = changed
         else:
             why = f"the log's status is {check.state}"
         try:
-            _PENDING[:] = [build(cfg)]
+            with quiet_hydra_utils():
+                _PENDING[:] = [build(cfg)]
         except ConfigError as err:
-            print(err, file=sys.stderr)
-            write_status(out, state="invalid", reason=str(err), pid=0, **ident)
+            print(config_line(err), file=sys.stderr)
+            write_status(out, state="invalid", reason=config_line(err), pid=0, **ident)
             return None
-        if check.complete and check.state == "completed":
-            moved = _set_aside(log)  # a complete log is never overwritten
-            why += f" (kept as {moved.name})"
+        if log.exists() or log.is_symlink():
+            if same_config and not changed and check.provenance and check.state != "completed":
+                log.unlink()  # a verified copy, unfinished: the rerun writes it whole
+            else:
+                moved = _set_aside(log)  # anything else is never overwritten
+                why += f" (kept as {moved.name})"
         runs = _int(read_status(out).get("runs"), 0) + 1
         write_status(out, state="running", runs=runs, reason="", rerun_reason=why, pid=0, **ident)
         try:
@@ -532,7 +796,7 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
             print(f"job {job}: cannot fork ({err}); running in the worker", file=sys.stderr)
             code = 0
             try:
-                result = run(_PENDING.pop(), out, overwrite=True)
+                result = run(_PENDING.pop(), out)
                 write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
             except Exception as err2:
                 write_status(out, state="aborted", reason=f"{type(err2).__name__}: {err2}")

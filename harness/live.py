@@ -18,7 +18,10 @@ shows the run's clock starting at the epoch.
 
 from __future__ import annotations
 
+import errno
+import socket
 import sys
+import threading
 
 import foxglove
 
@@ -123,14 +126,28 @@ class LiveServer:
             return
         ch.log(data, log_time=log_time_ns)
 
+    STOP_S = 2.0
+    """Longest wait (s) for the server to stop: a client that subscribed and stopped
+    reading would hold it for its queue's flush (tens of seconds)."""
+
     def close(self) -> None:
-        """Unadvertise every channel and stop the server (idempotent)."""
+        """Unadvertise every channel and stop the server (idempotent), waiting at most
+        :attr:`STOP_S` for it (in a daemon thread, so signals stay handled and the
+        process can end while a stalled client holds the server).
+        """
         if self._closed:
             return
         self._closed = True
         for ch in self._channels.values():
             ch.close()
-        self._server.stop()
+        stopper = threading.Thread(target=self._server.stop, name="live-stop", daemon=True)
+        stopper.start()
+        stopper.join(self.STOP_S)
+        if stopper.is_alive():
+            print(
+                f"live view: a client of {self.url} is not reading; not waiting for it",
+                file=sys.stderr,
+            )
 
     def __enter__(self) -> LiveServer:
         return self
@@ -161,10 +178,45 @@ class LiveView:
         self.host = host
         self.server: LiveServer | None = None
 
+    def probe(self) -> None:
+        """Check, before anything is written, that the server could start: the host
+        resolves to an address of this machine and the port is free (when not 0).
+
+        Raises:
+            ParameterError: ``host`` for an address that does not resolve or is not this
+                machine's, ``port`` for a port in use or not allowed.
+        """
+        if not self.enabled:
+            return
+        try:
+            infos = socket.getaddrinfo(self.host, self.port, type=socket.SOCK_STREAM)
+        except (OSError, UnicodeError) as err:
+            raise ParameterError(
+                "host", self.host, f"an address of this machine to serve on ({err})"
+            ) from None
+        family, kind, proto, _, address = infos[0]
+        with socket.socket(family, kind, proto) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                s.bind(address)
+            except OSError as err:
+                if err.errno in (errno.EADDRINUSE, errno.EACCES):
+                    raise ParameterError(
+                        "port",
+                        self.port,
+                        f"a port free to serve on (ws://{self.host}:{self.port}: "
+                        f"{err.strerror}; choose another log.live_port or stop the program "
+                        "using it)",
+                    ) from None
+                raise ParameterError(
+                    "host", self.host, f"an address of this machine to serve on ({err.strerror})"
+                ) from None
+
     def initialize(self, run: RunContext) -> None:
         """Start the server (when enabled) and say where it is, on standard error."""
         if not self.enabled:
             return
+        self.probe()
         try:
             self.server = LiveServer(self.host, self.port)
         except LiveServerError as err:

@@ -285,16 +285,21 @@ class McapLogger:
     def initialize(self, run: RunContext) -> None:
         """Open ``run.out_dir / run.mcap`` and write the target."""
         self.run = run
-        self.open(run.out_dir / LOG_FILE, run.publishers[0] if run.publishers else None)
+        live = run.publishers[0] if run.publishers else None
+        self.open(run.out_dir / LOG_FILE, live, exclusive=run.exclusive)
         self.write_target(self.target.p)
 
-    def open(self, path: Path, live: LiveServer | None = None) -> None:
+    def open(self, path: Path, live: LiveServer | None = None, exclusive: bool = True) -> None:
         """Create the file, register the schemas and write the ``config`` and
         ``provenance`` records; also publish every message to ``live`` when given.
+
+        Raises:
+            FileExistsError: when ``exclusive`` and the file exists (the open itself
+                refuses, so two writers can never share one log).
         """
         self.path, self.live = Path(path), live
         self._schema_defs: dict[int, tuple[str, str, bytes]] = {}
-        self._file = open(self.path, "wb")
+        self._file = open(self.path, "xb" if exclusive else "wb")
         self._opened = True
         # data-section CRC too: metadata records outside chunks are then protected as well
         self._writer = McapWriter(

@@ -51,11 +51,15 @@ class RunContext:
             ``initialize`` and at the start record; the logger writes it with its first
             step.
         publishers: Live servers the logger hands every message it writes.
+        exclusive: Whether the log must be a new file (created exclusively: an
+            existing one, even one another process created a moment before, is refused
+            by the open itself); False replaces it.
     """
 
     out_dir: Path
     theory: dict[str, str] = field(default_factory=dict)
     publishers: list[Any] = field(default_factory=list)
+    exclusive: bool = True
 
 
 @dataclass(frozen=True)

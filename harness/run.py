@@ -140,13 +140,15 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
         cfg: The config, or the experiment built from it (built once: a caller that
             built to check hands its build on). An experiment runs once.
         out_dir: The run directory.
-        overwrite: Replace an existing ``run.mcap`` (a sweep's resume decides this);
-            by default an existing log is refused.
+        overwrite: Replace an existing ``run.mcap``; by default an existing log is
+            refused, and the log is created exclusively, so of two runs started into
+            one directory at the same moment exactly one writes it.
 
     Raises:
         ConfigError: before anything is written, for a value that is not allowed, an
-            existing log in ``out_dir``, a log larger than the free disk space, or an
-            observer that cannot start (a live port in use).
+            existing log in ``out_dir`` (also one another process creates while this
+            run starts), a log larger than the free disk space, or an observer that
+            cannot start (a live port in use).
         ValueError: for an experiment that has run already.
         DiskFull: when the disk fills during the run (the log holds every chunk
             written before; status ``aborted`` when it could still be finalised).
@@ -172,7 +174,7 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
     stop.install()  # before the log exists: a signal from here on finalises it
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
-        return _run(exp, out_dir, stop)
+        return _run(exp, out_dir, stop, exclusive=not overwrite)
     finally:
         stop.interruptible = False
         stop.restore()
@@ -199,6 +201,14 @@ def _initialize(exp: Experiment, context: RunContext) -> list[Observer]:
             _finalize(started, Status("aborted", f"observer {name} could not start: {err}", 0.0))
             key = exp.keys.get(f"observers.{name}.{err.name}", f"observers.{name}.{err.name}")
             raise ConfigError(key, err.value, err.allowed) from None
+        except FileExistsError as err:  # another run created the log first
+            _finalize(started, Status("aborted", f"observer {name} could not start", 0.0))
+            raise ConfigError(
+                "hydra.run.dir",
+                str(context.out_dir),
+                f"a directory without a run.mcap ({err.filename} was created by another "
+                "run: not overwritten)",
+            ) from None
         except BaseException as err:
             why = f"observer {name} could not start: {type(err).__name__}: {err}"
             try:
@@ -223,16 +233,17 @@ def _finalize(observers: list[Observer], status: Status) -> None:
         raise first
 
 
-def _run(exp: Experiment, out_dir: Path, stop: StopRequest) -> RunResult:
+def _run(exp: Experiment, out_dir: Path, stop: StopRequest, exclusive: bool) -> RunResult:
     """The loop of :func:`run`: observers initialised, the loop stepped, the observers
-    finalised whatever happens (so the log always is).
+    finalised whatever happens (so the log always is); the log created exclusively when
+    ``exclusive``.
     """
     rng = np.random.default_rng(exp.seed)
     steps = exp.steps
     loop = ClosedLoop(
         exp.plant, exp.estimator, exp.control, exp.model, exp.dt, rng, target=exp.target
     )
-    context = RunContext(out_dir)
+    context = RunContext(out_dir, exclusive=exclusive)
     state, reason, done = "aborted", "", 0
     last: dict[str, float | None] = {}
     disk_error: OSError | None = None
