@@ -30,6 +30,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from analysis import sweep
+from analysis.output import write_text
 from analysis.plotting import save_figure
 
 LAW_NAMES = {
@@ -156,8 +157,7 @@ def draw_laws_n(study: sweep.Study) -> list[Path]:
     """:func:`laws_n_figure` and :func:`laws_table` (printed and written)."""
     paths = laws_n_figure(study.usable, study.out)
     table = laws_table(study.usable)
-    path = study.out / "laws_table.md"
-    path.write_text(table)
+    path = write_text(study.out / "laws_table.md", table)
     print(table)
     return [*paths, path]
 

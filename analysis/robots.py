@@ -23,6 +23,7 @@ from matplotlib.colors import LogNorm
 
 from analysis import sweep
 from analysis.laws import _by_law, _cell
+from analysis.output import write_text
 from analysis.plotting import save_figure
 
 PLANT_NAMES = {
@@ -132,8 +133,7 @@ def draw_robots(study: sweep.Study) -> list[Path]:
     """:func:`robots_figure` and :func:`robots_table` (printed and written)."""
     paths = robots_figure(study.usable, study.out)
     table = robots_table(study.usable)
-    path = study.out / "robots_table.md"
-    path.write_text(table)
+    path = write_text(study.out / "robots_table.md", table)
     print(table)
     return [*paths, path]
 
@@ -226,7 +226,6 @@ def draw_link(study: sweep.Study) -> list[Path]:
     """:func:`link_figure` and :func:`link_boundary` (printed and written)."""
     paths = link_figure(study.usable, study.out)
     text = link_boundary(study.usable)
-    path = study.out / "link_boundary.md"
-    path.write_text(text)
+    path = write_text(study.out / "link_boundary.md", text)
     print(text)
     return [*paths, path]

@@ -29,8 +29,10 @@ float32 values interleaved per cell, frame ``world``. Field messages every
 ``field_every`` steps (and at the last step), positions every ``positions_every``.
 
 Metadata records: ``config`` (key ``yaml``: the resolved config), ``provenance``
-(git commit and dirty flag, package versions, Python version, seed, host, start
-time; the only wall-clock values in the file), ``theory`` (``poincare_lambda``, the
+(git commit and dirty flag, ``git_diff_sha256`` of the uncommitted code, package
+versions, Python version, ``code_sha256`` of all of these
+(:func:`harness.identity.provenance`), seed, host, start time; the only wall-clock
+values in the file), ``theory`` (``poincare_lambda``, the
 ``p_*``-weighted Poincare constant on the grid in 1 / length^2, and ``rate_exact`` =
 ``(alpha + sigma) lambda`` in 1 / s, the decay rate with exact estimates) and
 ``status`` (key ``state``: ``completed`` | ``aborted`` | ``diverged``, key
