@@ -136,6 +136,15 @@ class Link:
         self._commands[b.sent] = b.command
         self._commands = {k: c for k, c in self._commands.items() if k in self._count}
 
+    def common_field(self) -> VelocityField | None:
+        """The field every robot holds, when they all hold one command that is a field
+        without velocities of its own; else None.
+        """
+        if len(self._count) != 1 or -1 in self._count:
+            return None
+        command = self._commands[next(iter(self._count))]
+        return command.field if command.robots is None else None
+
     def velocities(self, positions: np.ndarray, grid: Grid) -> np.ndarray:
         """Each robot's commanded velocity ``(2, N)`` (length / s) at its position
         ``(2, N)`` (length) under the command it holds (zero for none).

@@ -243,15 +243,9 @@ class Agents:
         self._sight = np.random.default_rng([self.seed, 3])  # the stream restarts
         self._observe()
 
-    def advance(
-        self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
-    ) -> None:
-        """The command through the link; the robots over the step under what each
-        holds (their own velocities when the command has them, else the field's
-        interpolant; ideal integrators by Euler-Maruyama with reflection); the limit
-        ``p_inf`` under the law's field of its own noise-free KDE and of ``p_inf``
-        itself (held over the step, like the command), or the robots' histogram
-        without a limit; then the localisation error of the new positions.
+    def move_robots(self, command: Command, dt: float, rng: np.random.Generator) -> None:
+        """The command through the link and the robots over the step under what each
+        holds; sets ``tracking_error``.
         """
         assert self.swarm is not None, "call start first"
         self.link.transmit(command, self._steps)
@@ -263,10 +257,28 @@ class Agents:
                 self.swarm.step(command.field, dt, rng)
             self.tracking_error = 0.0
         else:
-            held = self.link.velocities(self.swarm.positions, self.grid)
-            applied = self.swarm.move(held, dt, rng)
-            # tracking error: (1/N) sum_k |applied_k - commanded_k|
-            self.tracking_error = float(np.mean(np.hypot(*(applied - held))))
+            field = self.link.common_field()
+            move_field = getattr(self.swarm, "move_field", None)
+            if field is not None and move_field is not None:  # one pass for a shared field
+                self.tracking_error = move_field(field, dt, rng)
+            else:
+                held = self.link.velocities(self.swarm.positions, self.grid)
+                applied = self.swarm.move(held, dt, rng)
+                # tracking error: (1/N) sum_k |applied_k - commanded_k|
+                self.tracking_error = float(np.mean(np.hypot(*(applied - held))))
+
+    def advance(
+        self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
+    ) -> None:
+        """The command through the link; the robots over the step under what each
+        holds (their own velocities when the command has them, else the field's
+        interpolant; ideal integrators by Euler-Maruyama with reflection); the limit
+        ``p_inf`` under the law's field of its own noise-free KDE and of ``p_inf``
+        itself (held over the step, like the command), or the robots' histogram
+        without a limit; then the localisation error of the new positions.
+        """
+        self.move_robots(command, dt, rng)
+        assert self.swarm is not None
         self.command_age = self.link.age
         self._steps += 1
         if self.has_limit:

@@ -262,3 +262,22 @@ def test_unicycle_step_edge_cases_are_finite_and_match_the_reference():
     np.testing.assert_allclose(a.headings, b.headings, atol=1e-12)
     np.testing.assert_array_equal(fast[:, 0], 0.0)  # no command: no motion
     np.testing.assert_allclose(a.headings[:, 1], [-1.0, 0.0], atol=1e-15)  # backs up
+
+
+def test_unicycles_under_a_shared_field_take_one_pass_with_the_same_result():
+    """move_field (interpolation inside the kernel) equals move under the field's
+    interpolant at the robots, and returns the mean tracking error."""
+    from harness.agents import interpolate
+    from harness.velocity import VelocityField
+
+    rng = np.random.default_rng(8)
+    field = VelocityField.from_centres(rng.uniform(-0.2, 0.2, (2, *GRID.shape)))
+    a, b = _uni(np.random.default_rng(3), 700), _uni(np.random.default_rng(3), 700)
+    for step in range(10):
+        v = interpolate(GRID, field.centres, b.positions)
+        error = a.move_field(field, 0.01, np.random.default_rng(step))
+        applied = b.move(v, 0.01, np.random.default_rng(step))
+        np.testing.assert_array_equal(a.positions, b.positions)
+        np.testing.assert_array_equal(a.headings, b.headings)
+        assert error == pytest.approx(np.mean(np.hypot(*(applied - v))), rel=1e-12)
+        assert error > 0
