@@ -62,9 +62,15 @@ from __future__ import annotations
 import numpy as np
 
 from harness.agents import Swarm, draw_normals, reflect
-from harness.compiled.robots import unicycle_field_step, unicycle_step
+from harness.compiled.robots import unicycle_step
 from harness.grid import Grid
 from harness.velocity import VelocityField
+
+_NO_VELOCITIES = np.zeros((2, 0))
+"""The compiled step's velocities when the robots take a field instead."""
+
+_NO_FIELD = np.zeros((2, 2, 2))
+"""The compiled step's field when the robots take their own velocities."""
 
 
 class UnicycleSwarm(Swarm):
@@ -111,24 +117,25 @@ class UnicycleSwarm(Swarm):
         g = self.grid
         draw_normals(rng, self._noise)
         unicycle_step(
-            self.positions, self.headings, np.ascontiguousarray(v, dtype=float), self._noise,
-            self.v_max, self.omega_max, self.lookahead, self.applied, float(dt),
-            g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
+            self.positions, self.headings, np.ascontiguousarray(v, dtype=float), _NO_FIELD,
+            self._noise, self.v_max, self.omega_max, self.lookahead, self.applied,
+            float(dt), g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
         )  # fmt: skip
         return self.applied
 
     def move_field(self, field: VelocityField, dt: float, rng: np.random.Generator) -> float:
         """:meth:`move` with every robot commanded the bilinear interpolant of ``field``'s
         cell centres at its position (:func:`harness.agents.interpolate`), in one
-        compiled pass (:func:`harness.compiled.robots.unicycle_field_step`); returns the
+        compiled pass (:func:`harness.compiled.robots.unicycle_step`); returns the
         tracking error, the mean over robots of ``|applied - commanded|`` (length / s).
         """
         g = self.grid
         draw_normals(rng, self._noise)
-        total = unicycle_field_step(
-            self.positions, self.headings, np.ascontiguousarray(field.centres, dtype=float),
-            self._noise, self.v_max, self.omega_max, self.lookahead, self.applied, float(dt),
-            g.x0, g.x1, g.y0, g.y1, g.nx, g.ny, float(np.sqrt(2.0 * self.sigma * dt)),
+        total = unicycle_step(
+            self.positions, self.headings, _NO_VELOCITIES,
+            np.ascontiguousarray(field.centres, dtype=float), self._noise, self.v_max,
+            self.omega_max, self.lookahead, self.applied, float(dt),
+            g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
         )  # fmt: skip
         return float(total) / self.n
 

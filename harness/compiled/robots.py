@@ -59,149 +59,11 @@ interpolate_robots = SerialParallel(
 """Compiled :func:`_interpolate_robots`."""
 
 
-@numba.njit(inline="always", cache=True, nogil=True)
-def _unicycle_hold(
-    k: int,
-    vx: float,
-    vy: float,
-    pos: np.ndarray,
-    heading: np.ndarray,
-    noise: np.ndarray,
-    v_max: np.ndarray,
-    omega_max: np.ndarray,
-    lookahead: np.ndarray,
-    applied: np.ndarray,
-    dt: float,
-    inv_dt: float,
-    x0: float,
-    x1: float,
-    y0: float,
-    y1: float,
-    scale: float,
-) -> float:
-    """Robot ``k``'s hold under the commanded velocity ``(vx, vy)`` (see
-    :func:`_unicycle_step`); returns ``|applied - commanded|``.
-    """
-    c = heading[0, k]
-    s = heading[1, k]
-    along = c * vx + s * vy
-    across = c * vy - s * vx
-    square = vx * vx + vy * vy
-    speed = math.sqrt(square) if square < 1e300 else math.hypot(vx, vy)
-    ell = lookahead[k]
-    # cos and sin of psi_0 and psi_1 through tau = tan(psi / 2)
-    if speed > 0.0:
-        inv_speed = 1.0 / speed
-        c0 = along * inv_speed
-        s0 = across * inv_speed
-    else:
-        c0 = 1.0
-        s0 = 0.0
-    decay = math.exp(-speed * dt / ell)
-    if c0 < 0.0 and s0 == 0.0:  # psi_0 = pi: the law's unstable rest, no turn
-        c1 = -1.0
-        s1 = 0.0
-    elif decay == 0.0:  # aligned within the hold (tan(psi_0 / 2) may be inf)
-        c1 = 1.0
-        s1 = 0.0
-    else:
-        # tan(psi_0 / 2) by the form without cancellation on each side of pi / 2
-        tau = s0 / (1.0 + c0) if c0 >= 0.0 else (1.0 - c0) / s0
-        tau *= decay
-        if abs(tau) <= 1.0:
-            q = tau * tau
-            r = 1.0 / (1.0 + q)
-            c1 = (1.0 - q) * r
-            s1 = 2.0 * tau * r
-        else:
-            w = 1.0 / tau
-            q = w * w
-            r = 1.0 / (q + 1.0)
-            c1 = (q - 1.0) * r
-            s1 = 2.0 * w * r
-    top_cos = max(abs(c0), abs(c1))
-    top_sin = 1.0 if c1 >= 0.0 >= c0 else max(abs(s0), abs(s1))
-    # the turn psi_0 - psi_1 as a rotation
-    rc = c0 * c1 + s0 * s1
-    rs = s0 * c1 - c0 * s1
-    if speed * top_cos <= v_max[k] and speed * top_sin <= omega_max[k] * ell:
-        # within the limits: the exact hold, the point ahead moves by v dt
-        nc = c * rc - s * rs
-        ns = s * rc + c * rs
-        ddx = vx * dt + ell * (c - nc)
-        ddy = vy * dt + ell * (s - ns)
-    else:
-        # at a limit: one arc of the clipped (u, omega)
-        omega = min(max(math.atan2(rs, rc) * inv_dt, -omega_max[k]), omega_max[k])
-        u = min(max(along, -v_max[k]), v_max[k])
-        half = 0.5 * omega * dt
-        sinc = math.sin(half) / half if abs(half) > 1e-6 else 1.0 - half * half / 6.0
-        hc = math.cos(half)
-        hs = math.sin(half)
-        ddx = u * dt * sinc * (c * hc - s * hs)
-        ddy = u * dt * sinc * (s * hc + c * hs)
-        tc = hc * hc - hs * hs
-        ts = 2.0 * hs * hc
-        nc = c * tc - s * ts
-        ns = s * tc + c * ts
-    # back onto the unit circle (one Newton step of 1 / sqrt: the rotation left it
-    # within round-off)
-    fix = 1.5 - 0.5 * (nc * nc + ns * ns)
-    heading[0, k] = nc * fix
-    heading[1, k] = ns * fix
-    applied[0, k] = ddx * inv_dt
-    applied[1, k] = ddy * inv_dt
-    px = pos[0, k] + ddx + noise[0, k] * scale
-    py = pos[1, k] + ddy + noise[1, k] * scale
-    if px < x0:
-        px = 2.0 * x0 - px
-    if px > x1:
-        px = 2.0 * x1 - px
-    if py < y0:
-        py = 2.0 * y0 - py
-    if py > y1:
-        py = 2.0 * y1 - py
-    pos[0, k] = min(max(px, x0), x1)
-    pos[1, k] = min(max(py, y0), y1)
-    ex = applied[0, k] - vx
-    ey = applied[1, k] - vy
-    return math.sqrt(ex * ex + ey * ey)
-
-
-@numba.njit(inline="always", cache=True, nogil=True)
-def _bilinear(
-    vc: np.ndarray,
-    px: float,
-    py: float,
-    x0: float,
-    y0: float,
-    dx: float,
-    dy: float,
-    nx: int,
-    ny: int,
-) -> tuple[float, float]:
-    """The bilinear interpolant of the cell-centre field ``vc`` at ``(px, py)``, extended
-    by the nearest centre values beyond the outermost centres.
-    """
-    u = min(max((px - x0) / dx - 0.5, 0.0), nx - 1.0)
-    w = min(max((py - y0) / dy - 0.5, 0.0), ny - 1.0)
-    i0 = min(int(u), nx - 2)
-    j0 = min(int(w), ny - 2)
-    fx = u - i0
-    fy = w - j0
-    a = vc[0, j0, i0] + fx * (vc[0, j0, i0 + 1] - vc[0, j0, i0])
-    b = vc[0, j0 + 1, i0] + fx * (vc[0, j0 + 1, i0 + 1] - vc[0, j0 + 1, i0])
-    vx = a * (1.0 - fy) + b * fy
-    a = vc[1, j0, i0] + fx * (vc[1, j0, i0 + 1] - vc[1, j0, i0])
-    b = vc[1, j0 + 1, i0] + fx * (vc[1, j0 + 1, i0 + 1] - vc[1, j0 + 1, i0])
-    vy = a * (1.0 - fy) + b * fy
-    return vx, vy
-
-
 def _unicycle_step(
     pos: np.ndarray,
     heading: np.ndarray,
     v: np.ndarray,
+    vc: np.ndarray,
     noise: np.ndarray,
     v_max: np.ndarray,
     omega_max: np.ndarray,
@@ -218,7 +80,11 @@ def _unicycle_step(
     :mod:`harness.unicycles`): the exact hold of the feedback-linearising law under the
     commanded velocity ``v[:, k]`` when it stays within the limits, else one arc of the
     clipped speeds; the scaled noise; the walls. ``heading`` holds the unit vectors
-    ``e(theta)`` ``(2, N)``; ``applied[:, k]`` gets the displacement over ``dt``.
+    ``e(theta)`` ``(2, N)``; ``applied[:, k]`` gets the displacement over ``dt``. The
+    commanded velocity is ``v[:, k]``, or, when ``v`` holds no column (shape ``(2,
+    0)``), the bilinear interpolant of the cell-centre field ``vc`` ``(2, ny, nx)`` at
+    the robot (as :func:`_interpolate_robots`), in the same pass. Returns the sum over
+    robots of ``|applied - commanded|``.
 
     The exact hold needs no angle: with ``tau = tan(psi / 2)``, ``tau_0 = (e_perp . v) /
     (|v| + e . v)``, ``tau_1 = tau_0 exp(-|v| dt / l)``, ``cos psi = (1 - tau^2) / (1 +
@@ -227,61 +93,120 @@ def _unicycle_step(
     """
     n = pos.shape[1]
     inv_dt = 1.0 / dt
-    total = 0.0
-    for k in numba.prange(n):
-        total += _unicycle_hold(
-            k, v[0, k], v[1, k], pos, heading, noise, v_max, omega_max, lookahead, applied,
-            dt, inv_dt, x0, x1, y0, y1, scale,
-        )  # fmt: skip
-    return total
-
-
-unicycle_step = SerialParallel(_unicycle_step, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS)
-"""Compiled :func:`_unicycle_step`; returns the sum over robots of ``|applied -
-commanded|``."""
-
-
-def _unicycle_field_step(
-    pos: np.ndarray,
-    heading: np.ndarray,
-    vc: np.ndarray,
-    noise: np.ndarray,
-    v_max: np.ndarray,
-    omega_max: np.ndarray,
-    lookahead: np.ndarray,
-    applied: np.ndarray,
-    dt: float,
-    x0: float,
-    x1: float,
-    y0: float,
-    y1: float,
-    nx: int,
-    ny: int,
-    scale: float,
-) -> float:
-    """:func:`_unicycle_step` with every robot commanded the bilinear interpolant of the
-    cell-centre field ``vc`` ``(2, ny, nx)`` at its position (as
-    :func:`_interpolate_robots`), in the same pass; returns the sum over robots of
-    ``|applied - commanded|``.
-    """
-    n = pos.shape[1]
-    inv_dt = 1.0 / dt
+    from_field = v.shape[1] == 0
+    ny = vc.shape[1]
+    nx = vc.shape[2]
     dx = (x1 - x0) / nx
     dy = (y1 - y0) / ny
     total = 0.0
     for k in numba.prange(n):
-        vx, vy = _bilinear(vc, pos[0, k], pos[1, k], x0, y0, dx, dy, nx, ny)
-        total += _unicycle_hold(
-            k, vx, vy, pos, heading, noise, v_max, omega_max, lookahead, applied,
-            dt, inv_dt, x0, x1, y0, y1, scale,
-        )  # fmt: skip
+        if from_field:
+            px = pos[0, k]
+            py = pos[1, k]
+            gu = min(max((px - x0) / dx - 0.5, 0.0), nx - 1.0)
+            gw = min(max((py - y0) / dy - 0.5, 0.0), ny - 1.0)
+            i0 = min(int(gu), nx - 2)
+            j0 = min(int(gw), ny - 2)
+            fx = gu - i0
+            fy = gw - j0
+            a = vc[0, j0, i0] + fx * (vc[0, j0, i0 + 1] - vc[0, j0, i0])
+            b = vc[0, j0 + 1, i0] + fx * (vc[0, j0 + 1, i0 + 1] - vc[0, j0 + 1, i0])
+            vx = a * (1.0 - fy) + b * fy
+            a = vc[1, j0, i0] + fx * (vc[1, j0, i0 + 1] - vc[1, j0, i0])
+            b = vc[1, j0 + 1, i0] + fx * (vc[1, j0 + 1, i0 + 1] - vc[1, j0 + 1, i0])
+            vy = a * (1.0 - fy) + b * fy
+        else:
+            vx = v[0, k]
+            vy = v[1, k]
+        c = heading[0, k]
+        s = heading[1, k]
+        along = c * vx + s * vy
+        across = c * vy - s * vx
+        square = vx * vx + vy * vy
+        speed = math.sqrt(square) if square < 1e300 else math.hypot(vx, vy)
+        ell = lookahead[k]
+        # cos and sin of psi_0 and psi_1 through tau = tan(psi / 2)
+        if speed > 0.0:
+            inv_speed = 1.0 / speed
+            c0 = along * inv_speed
+            s0 = across * inv_speed
+        else:
+            c0 = 1.0
+            s0 = 0.0
+        decay = math.exp(-speed * dt / ell)
+        if c0 < 0.0 and s0 == 0.0:  # psi_0 = pi: the law's unstable rest, no turn
+            c1 = -1.0
+            s1 = 0.0
+        elif decay == 0.0:  # aligned within the hold (tan(psi_0 / 2) may be inf)
+            c1 = 1.0
+            s1 = 0.0
+        else:
+            # tan(psi_0 / 2) by the form without cancellation on each side of pi / 2
+            tau = s0 / (1.0 + c0) if c0 >= 0.0 else (1.0 - c0) / s0
+            tau *= decay
+            if abs(tau) <= 1.0:
+                q = tau * tau
+                r = 1.0 / (1.0 + q)
+                c1 = (1.0 - q) * r
+                s1 = 2.0 * tau * r
+            else:
+                w = 1.0 / tau
+                q = w * w
+                r = 1.0 / (q + 1.0)
+                c1 = (q - 1.0) * r
+                s1 = 2.0 * w * r
+        top_cos = max(abs(c0), abs(c1))
+        top_sin = 1.0 if c1 >= 0.0 >= c0 else max(abs(s0), abs(s1))
+        # the turn psi_0 - psi_1 as a rotation
+        rc = c0 * c1 + s0 * s1
+        rs = s0 * c1 - c0 * s1
+        if speed * top_cos <= v_max[k] and speed * top_sin <= omega_max[k] * ell:
+            # within the limits: the exact hold, the point ahead moves by v dt
+            nc = c * rc - s * rs
+            ns = s * rc + c * rs
+            ddx = vx * dt + ell * (c - nc)
+            ddy = vy * dt + ell * (s - ns)
+        else:
+            # at a limit: one arc of the clipped (u, omega)
+            omega = min(max(math.atan2(rs, rc) * inv_dt, -omega_max[k]), omega_max[k])
+            u = min(max(along, -v_max[k]), v_max[k])
+            half = 0.5 * omega * dt
+            sinc = math.sin(half) / half if abs(half) > 1e-6 else 1.0 - half * half / 6.0
+            hc = math.cos(half)
+            hs = math.sin(half)
+            ddx = u * dt * sinc * (c * hc - s * hs)
+            ddy = u * dt * sinc * (s * hc + c * hs)
+            tc = hc * hc - hs * hs
+            ts = 2.0 * hs * hc
+            nc = c * tc - s * ts
+            ns = s * tc + c * ts
+        # back onto the unit circle (one Newton step of 1 / sqrt: the rotation left it
+        # within round-off)
+        fix = 1.5 - 0.5 * (nc * nc + ns * ns)
+        heading[0, k] = nc * fix
+        heading[1, k] = ns * fix
+        applied[0, k] = ddx * inv_dt
+        applied[1, k] = ddy * inv_dt
+        px = pos[0, k] + ddx + noise[0, k] * scale
+        py = pos[1, k] + ddy + noise[1, k] * scale
+        if px < x0:
+            px = 2.0 * x0 - px
+        if px > x1:
+            px = 2.0 * x1 - px
+        if py < y0:
+            py = 2.0 * y0 - py
+        if py > y1:
+            py = 2.0 * y1 - py
+        pos[0, k] = min(max(px, x0), x1)
+        pos[1, k] = min(max(py, y0), y1)
+        ex = applied[0, k] - vx
+        ey = applied[1, k] - vy
+        total += math.sqrt(ex * ex + ey * ey)
     return total
 
 
-unicycle_field_step = SerialParallel(
-    _unicycle_field_step, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS
-)
-"""Compiled :func:`_unicycle_field_step`."""
+unicycle_step = SerialParallel(_unicycle_step, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS)
+"""Compiled :func:`_unicycle_step`."""
 
 
 def _double_integrator_step(
