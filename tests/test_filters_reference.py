@@ -32,7 +32,8 @@ def rel(a, b):
     return np.abs(a - b).max() / np.abs(b).max()
 
 
-@pytest.mark.parametrize("n", [6, 10])
+# n = 10 repeats the n = 6 check on a larger grid at several times its cost: make test-slow
+@pytest.mark.parametrize("n", [6, pytest.param(10, marks=pytest.mark.slow)])
 def test_density_filter_matches_filterpy(n):
     rng = np.random.default_rng(n)
     g = Grid.square(n)
@@ -56,7 +57,7 @@ def test_density_filter_matches_filterpy(n):
     assert rel(ours.kf.P_prior, ref.kf._kf.P_prior) < 1e-9
 
 
-@pytest.mark.parametrize("n", [6, 10])
+@pytest.mark.parametrize("n", [6, pytest.param(10, marks=pytest.mark.slow)])
 def test_gradient_filter_matches_filterpy(n):
     rng = np.random.default_rng(100 + n)
     g = Grid.square(n)
