@@ -41,7 +41,7 @@ format: $(STAMP) ## Format the code with ruff
 	$(PY) -m ruff format .
 	$(PY) -m ruff check --fix .
 
-bench: $(STAMP) ## Speed benchmarks, each figure next to its target (about 4 min)
+bench: $(STAMP) ## Speed benchmarks, each figure next to its target (about 6 min)
 	$(PY) -m benchmarks.suite
 	$(PY) -m benchmarks.numerics
 	$(PY) -m benchmarks.distributed --app
