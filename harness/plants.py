@@ -70,14 +70,12 @@ def command_link(
         raise ParameterError(name, err.value, err.allowed) from None
 
 
-def spread_values(
-    name: str, nominal: float, spread: float, n: int, rng: np.random.Generator
-) -> np.ndarray:
+def spread_values(nominal: float, spread: float, n: int, rng: np.random.Generator) -> np.ndarray:
     """Per-robot values ``nominal (1 + spread U)``, ``U`` uniform on ``[-1, 1]`` (drawn
-    from ``rng``); ``nominal > 0``, ``0 <= spread < 1``, so every value is positive.
+    from ``rng``); ``nominal > 0`` and ``0 <= spread < 1`` (checked by the plant's
+    constructor), so every value is positive.
     """
-    value = number(name, nominal, 0.0, strict=True)
-    return np.asarray(value * (1.0 + spread * rng.uniform(-1.0, 1.0, n)))
+    return np.asarray(nominal * (1.0 + spread * rng.uniform(-1.0, 1.0, n)))
 
 
 def _spread(spread: float) -> float:
@@ -368,9 +366,9 @@ class Unicycles(Agents):
         headings = np.asarray(rng.uniform(-np.pi, np.pi, n))
         return UnicycleSwarm(
             self.grid, positions, self.model.sigma, headings,
-            spread_values("v_max", self.v_max, s, n, rng),
-            spread_values("omega_max", self.omega_max, s, n, rng),
-            spread_values("lookahead", self.lookahead, s, n, rng),
+            spread_values(self.v_max, s, n, rng),
+            spread_values(self.omega_max, s, n, rng),
+            spread_values(self.lookahead, s, n, rng),
         )  # fmt: skip
 
 
@@ -429,8 +427,8 @@ class DoubleIntegrators(Agents):
         n, s = positions.shape[1], self.spread
         return DoubleIntegratorSwarm(
             self.grid, positions, self.model.sigma,
-            spread_values("a_max", self.a_max, s, n, rng),
-            spread_values("gain", self.gain, s, n, rng),
+            spread_values(self.a_max, s, n, rng),
+            spread_values(self.gain, s, n, rng),
         )  # fmt: skip
 
 
