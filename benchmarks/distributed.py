@@ -32,7 +32,7 @@ from threadpoolctl import threadpool_limits
 
 from harness.agents import Swarm
 from harness.control import PaperControl, paper_law
-from harness.decentralised import RobotEstimators, algebraic_connectivity, message_counts
+from harness.decentralised import RobotEstimators, algebraic_connectivity
 from harness.decentralised.density import jacobi_sweeps, stencil_coefficients
 from harness.decentralised.graph import n_components
 from harness.densities import DEFAULT_TARGET, Box, Target
@@ -128,7 +128,7 @@ def run(
         clock("(components, logged)", lambda e=e: n_components(e.adjacency))
         clock("(algebraic connectivity, logged)", lambda e=e: algebraic_connectivity(e.adjacency))
     graph = f"radius {radius}" if radius is not None else f"k = {k}"
-    counts = message_counts(est.adjacency, est.consensus.rounds, est.consensus.fields * g.size)
+    counts = est.communication(est.adjacency)
     tracked = est.filters.gradient.tracks_kernel_gradient  # the gradient filter's solves
     extra = f", PCG iterations {est.filters.poisson.iterations}" if tracked else ""
     print(
