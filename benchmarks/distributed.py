@@ -144,11 +144,13 @@ def run(
     clock.report(skip=2 if warmup == 0 else 0, target=target)
 
 
-def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
+def app_loop(
+    n_robots: int, radius: float, gradient: str, steps: int, design: str = "grid"
+) -> float:
     """Milliseconds per step of the loop the app builds with ``estimator=distributed``
-    (robots, plant's KDE and ``N -> infinity`` limit, graph, consensus, per-robot
-    filters, the centralised reference filters, network metrics, per-robot law),
-    median over ``steps`` steps after two untimed ones.
+    and ``+design=design`` (robots, plant's KDE and ``N -> infinity`` limit, graph,
+    consensus, per-robot filters, the centralised reference filters, network metrics,
+    per-robot law), median over ``steps`` steps after two untimed ones.
     """
     from harness.api import compose as compose_config
     from harness.build import build
@@ -160,6 +162,7 @@ def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
             f"agents.n={n_robots}",
             f"estimator.radius={radius}",
             f"estimator.gradient={gradient}",
+            f"+design={design}",
         ]
     )
     parts = build(cfg)
@@ -176,17 +179,27 @@ def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
     return 1e3 * float(np.median(times))
 
 
+DESIGNS = ("grid", "band", "pi_band", "command_band", "pi_command_band")
+"""The designs of ``conf/design/`` (the ``distributed_frontier`` study's)."""
+
+
 def bench_app(quick: bool) -> bool:
-    """The app-built decentralised loop against its target."""
+    """The app-built decentralised loop against its targets: N = 1024 with the baseline
+    design, and N = 4096 at r = 0.1 with every design (the target is for the fastest).
+    """
     print("Decentralised loop as the app builds it (n = 30, estimator=distributed):")
     ok = True
-    cases = [(1024, 0.1, "grid", 200, TARGET_MS), (4096, 0.05, "grid", 20, None)]
-    cases.append((1024, 0.1, "filter", 3, TARGET_MS))
-    for n_robots, radius, gradient, steps, target in cases:
+    cases = [(1024, 0.1, "grid", 200, TARGET_MS, "grid")]
+    cases += [(4096, 0.1, "grid", 20, None, d) for d in DESIGNS]
+    cases.append((1024, 0.1, "filter", 3, TARGET_MS, "grid"))
+    fastest = np.inf
+    for n_robots, radius, gradient, steps, target, design in cases:
         if quick:
             steps = max(1, steps // 4)
-        ms = app_loop(n_robots, radius, gradient, steps)
-        name = f"N = {n_robots}, r = {radius}, gradient = {gradient}"
+        ms = app_loop(n_robots, radius, gradient, steps, design)
+        if n_robots == 4096:
+            fastest = min(fastest, ms)
+        name = f"N = {n_robots}, r = {radius}, gradient = {gradient}, {design}"
         if target is None:
             print(f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)")
             continue
@@ -197,6 +210,60 @@ def bench_app(quick: bool) -> bool:
             f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)   "
             f"target >= {1e3 / target:.0f} steps/s   {verdict}"
         )
+    met = fastest <= TARGET_MS
+    ok &= met
+    print(
+        f"  N = 4096, r = 0.1, fastest design: {fastest:.1f} ms per step ({1e3 / fastest:.1f} "
+        f"steps/s)   target >= {1e3 / TARGET_MS:.0f} steps/s   {'OK' if met else 'MISSED'}"
+    )
+    return ok
+
+
+def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> None:
+    """Build the app's loop, take ``steps`` steps, print the peak resident memory against
+    the estimate the harness prints and checks before a run
+    (:func:`harness.checks.check_memory`); run in a process of its own.
+    """
+    import resource
+
+    from harness.api import compose as compose_config
+    from harness.build import build
+    from harness.checks import check_memory
+    from harness.grid import Grid as GridType
+    from harness.loop import ClosedLoop
+
+    overrides = ["estimator=distributed", f"agents.n={n_robots}", f"estimator.radius={radius}",
+                 f"+design={design}"]  # fmt: skip
+    cfg = compose_config(overrides)
+    estimate = check_memory(cfg, GridType.square(int(cfg.grid.n), float(cfg.grid.length)))
+    parts = build(cfg)
+    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, DT,
+                      np.random.default_rng(0))  # fmt: skip
+    loop.start()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        loop.step()
+    ms = 1e3 * (time.perf_counter() - t0) / steps
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
+    verdict = "OK" if peak <= estimate else "MISSED"
+    print(
+        f"  N = {n_robots}, r = {radius}, {design}: peak memory {peak / 2**20:.0f} MiB "
+        f"against the estimate {estimate / 2**20:.0f} MiB   {verdict} ({ms:.0f} ms per step)"
+    )
+
+
+def bench_memory() -> bool:
+    """N = 16384 runs within the memory estimate (a process per design)."""
+    import subprocess
+    import sys
+
+    print("Memory at N = 16384, r = 0.1 (peak resident set over 3 steps):")
+    ok = True
+    for design in DESIGNS:
+        cmd = [sys.executable, "-m", "benchmarks.distributed", "--memory", "16384", design]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        print(out.stdout.rstrip() or f"  {design}: failed: {out.stderr.strip()[-300:]}")
+        ok &= out.returncode == 0 and "OK" in out.stdout
     return ok
 
 
@@ -214,12 +281,20 @@ def main() -> None:
     )
     parser.add_argument("--quick", action="store_true", help="fewer steps (with --app)")
     parser.add_argument(
+        "--memory", nargs=2, metavar=("N", "DESIGN"), help="one memory case (in its own process)"
+    )
+    parser.add_argument(
         "--gradient-filter", action="store_true", help="also time gradient='filter' (slow)"
     )
     args = parser.parse_args()
+    if args.memory:
+        with threadpool_limits(1):
+            memory_case(int(args.memory[0]), 0.1, args.memory[1])
+        return
     if args.app:
         with threadpool_limits(1):
             ok = bench_app(args.quick)
+            ok &= bench_memory()
         print("all targets met" if ok else "some targets MISSED")
         return
     numba.set_num_threads(args.threads)

@@ -73,14 +73,16 @@ and gains ``k_P``, ``k_I``, each step adds the input's change and runs ``m`` rou
     w'      = w + k_I L_eps z'
 
 ``1^T L_eps = 0``, so ``1^T z`` changes only by the input's change: the invariant above
-holds as for the first-order form (the PI form with ``k_I = 0``, ``k_P = 1`` is it).
+holds as for the first-order form (with one round per step, the PI form with ``k_I = 0``,
+``k_P = 1`` is it).
 *Ramps.* For a constant input change ``phi(t + 1) - phi(t) = c`` (robots moving at
 constant velocity, to first order) the first-order form settles at the lag
 ``e_* = (I - W^m)^+ W^m Pi c``, which the smallest eigenvalues of ``L`` amplify as
-``1 / (eps lambda_2)``. The PI form's fixed point needs ``w' = w``, i.e. ``L_eps z' =
-0``: the output agrees (``e = 0``) and ``k_I L_eps w = (I - k_P L_eps) Pi c`` absorbs the
-ramp. So the PI form tracks a ramp with zero steady error (tested against the
-first-order lag formula). *Stability.* On the eigenvector of ``L_eps`` with eigenvalue
+``1 / (m eps lambda_2)``. In the PI form every round of a step is then the same affine
+map (each adds ``c / m``), and its fixed point needs ``w' = w``, i.e. ``L_eps z' = 0``:
+the robots agree after every round (``e = 0``), and ``k_I L_eps w = (I - k_P L_eps) Pi c
+/ m`` absorbs the ramp. So the PI form tracks a ramp with zero steady error (tested
+against the first-order lag formula). *Stability.* On the eigenvector of ``L_eps`` with eigenvalue
 ``mu`` in ``(0, 2)`` one round maps ``(e, w)`` by ``[[1 - a, -b], [b (1 - a), 1 - b^2]]``
 with ``a = k_P mu``, ``b = k_I mu``: determinant ``1 - a``, trace ``2 - a - b^2``. Both
 eigenvalues lie inside the unit circle (Jury) iff ``|1 - a| < 1`` and ``b^2 < 4 - 2 a``,
