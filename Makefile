@@ -24,6 +24,7 @@ test: $(STAMP) ## Static checks (ruff, mypy) and the test suite (excludes tests 
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m mypy
+	scripts/viewer_deps.sh  # chromium and viewer/node_modules for tests/test_viewer.py; never fails
 	$(PY) -m pytest
 
 test-slow: $(STAMP) ## Run only the slow tests
