@@ -27,7 +27,7 @@ import numpy as np
 
 from analysis.load import load_run
 from analysis.plotting import save_figure
-from analysis.stats import points
+from analysis.sweep import points
 
 MESSAGES_BUDGET = 100.0
 """Messages per robot per step the goal allows."""
@@ -105,7 +105,8 @@ def within_budget(row: dict[str, Any]) -> bool:
 
 def frontier_figure(table: list[dict[str, Any]], central: float, out: Path) -> list[Path]:
     """Ratio against bytes, one marker per design, one colour per radius, the rounds
-    written beside each point, the Pareto front and the goal's ratio."""
+    written beside each point, the Pareto front and the goal's ratio.
+    """
     designs = sorted({r["design"] for r in table})
     radii = sorted({r["radius"] for r in table})
     markers = "osD^v<>p*h"

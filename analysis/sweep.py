@@ -780,6 +780,15 @@ def _law_figure(name: str, module: str = "laws") -> Callable[[Study], list[Path]
     return draw
 
 
+FRONTIER_KEYS = (
+    "estimator.consensus",
+    "estimator.share",
+    "estimator.messages",
+    "estimator.radius",
+    "estimator.rounds",
+)
+"""The keys the ``distributed_frontier`` figure draws against (:mod:`analysis.frontier`)."""
+
 FIGURES: dict[str, Figure] = {
     "iss_gain": Figure(_iss, ("law", "estimator.delta")),
     "laws_n": Figure(_law_figure("draw_laws_n"), ("law", "agents.n")),
@@ -796,11 +805,7 @@ FIGURES: dict[str, Figure] = {
     "debias_n": Figure(_debias, ("agents.n", "kde.debias")),
     "agents_n": Figure(_agents, ("agents.n",)),
     "distributed_r": Figure(_network, ("estimator.radius",)),
-    "distributed_frontier": Figure(
-        _law_figure("draw_frontier", "frontier"),
-        ("estimator.consensus", "estimator.share", "estimator.messages", "estimator.radius",
-         "estimator.rounds"),
-    ),  # fmt: skip
+    "distributed_frontier": Figure(_law_figure("draw_frontier", "frontier"), FRONTIER_KEYS),
     "conv_grid_agents": Figure(_grid, ("grid.n",)),
     "convergence": Figure(_convergence),
 }

@@ -179,7 +179,7 @@ def app_loop(
     return 1e3 * float(np.median(times))
 
 
-DESIGNS = ("grid", "band", "pi_band", "command_band", "pi_command_band")
+DESIGNS = ("grid", "band", "pi_band", "command_band")
 """The designs of ``conf/design/`` (the ``distributed_frontier`` study's)."""
 
 

@@ -49,10 +49,11 @@ def test_pi_tracks_a_ramp_without_lag_where_first_order_lags_by_its_formula(rng,
         dac.z = z0.copy()
         if dac.w is not None:
             dac.w[...] = 0.0
-        for step in range(3000 // rounds):
+        steps = 3000 // rounds
+        for _ in range(steps):
             dac._mix(w, rounds, pos, c)
         # the invariant: the mean is the inputs' mean, whatever the form
-        np.testing.assert_allclose(dac.z.mean(axis=0), (z0 + (step + 1) * c).mean(axis=0),
+        np.testing.assert_allclose(dac.z.mean(axis=0), (z0 + steps * c).mean(axis=0),
                                    rtol=1e-9, atol=1e-9)  # fmt: skip
         errors[form] = dac.z - dac.z.mean(axis=0)
     np.testing.assert_allclose(errors["first_order"], lag, atol=1e-9 * np.abs(lag).max())

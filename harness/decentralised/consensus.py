@@ -460,9 +460,7 @@ class DynamicAverageConsensus:
 
         return mix
 
-    def _mix(
-        self, w: sp.csr_matrix, rounds: int, positions: np.ndarray, delta: np.ndarray
-    ) -> None:
+    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray, delta: np.ndarray) -> None:
         """Add the input's change ``delta`` and run ``rounds`` rounds: eq. ``DAC`` (``z <-
         W^m (z + delta)``), or eq. ``PI`` with ``delta / m`` added before each round (so
         that every round of a step is the same map under a ramp, and its fixed point
