@@ -294,6 +294,23 @@ class DistributedEstimator:
         robot: Index of the robot whose estimate is logged (``/fields/p_hat_robot``).
         connectivity_every: Steps between evaluations of the graph's algebraic
             connectivity (an eigenvalue problem of ``N`` unknowns; held in between).
+        consensus: ``first_order`` (eq. ``DAC``) or ``pi`` (eq. ``PI``,
+            :mod:`~harness.decentralised.consensus`).
+        integral_gain: ``k_I`` of ``pi`` in ``(0, 1)`` (``k_P = 1 - k_I^2``).
+        share: ``density`` (consensus on the kernels only) or ``command`` (then
+            ``command_rounds`` rounds of agreement on the law's input, eq. ``AGREE`` of
+            :class:`RobotEstimators`).
+        messages: ``grid`` (fields of ``M`` cells) or ``band`` (the band's ``K`` cosine
+            coefficients, :mod:`~harness.decentralised.band`; the reference then observes
+            the band-limited KDE, which is what the robots can agree on).
+        band_limit: ``kappa_c h`` of ``band`` messages (finite; 329 modes at the paper's
+            grid and ``h``, 2632 bytes a message; 2.0 keeps 214 modes, 1712 bytes).
+        command_rounds: Rounds of eq. ``AGREE`` per step (``>= 1``).
+
+    The designs ``conf/design/*.yaml`` set ``consensus``, ``share`` and ``messages``
+    together (``+design=command_band``); the metrics ``messages``, ``bytes`` and
+    ``message_bytes`` count what each design sends
+    (:meth:`RobotEstimators.communication`).
     """
 
     uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
