@@ -127,11 +127,10 @@ def plain_text_docstring(
 _SECTION = re.compile(r"^(\s*)(Args|Arguments|Parameters|Keyword Args|Attributes):\s*$")
 
 
-def joined_names(
-    app: Any, what: str, name: str, obj: Any, options: Any, lines: list[str]
-) -> None:
+def joined_names(app: Any, what: str, name: str, obj: Any, options: Any, lines: list[str]) -> None:
     """Join an ``Args:`` entry that lists several names over two lines (``grid, model,
-    ...,`` then ``seed, dt: As ...``) into one line, in place (before napoleon)."""
+    ...,`` then ``seed, dt: As ...``) into one line, in place (before napoleon).
+    """
     entry: int | None = None
     i = 0
     while i < len(lines):
@@ -180,7 +179,8 @@ def _partition_free_text(self: GoogleDocstring, line: str) -> tuple[str, str, st
 def free_text_returns() -> None:
     """A ``Returns:`` section or an attribute's docstring whose first line is a sentence
     with a colon keeps the sentence as its description instead of taking the words
-    before the colon for a type."""
+    before the colon for a type.
+    """
 
     def flagged(method: Any) -> Any:
         def wrapper(self: GoogleDocstring, *args: Any, **kwargs: Any) -> Any:
@@ -230,7 +230,8 @@ def _import(path: str) -> Any:
 
 def _canonical(path: str) -> str | None:
     """Where the object at ``path`` is defined (a name a module imports or re-exports
-    leads to its definition)."""
+    leads to its definition).
+    """
     obj = _import(path)
     if obj is None:
         return None
@@ -245,7 +246,8 @@ def resolve_short_name(app: Any, env: Any, node: Any, contnode: Any) -> Any:
     """Resolve ``node``'s Python reference when exactly one documented object fits it:
     a member of the current class or one of its bases; the definition of a name that
     a module imports (``harness.decentralised.DistributedEstimator``); else the only
-    documented object whose full name ends with the target."""
+    documented object whose full name ends with the target.
+    """
     if node.get("refdomain") != "py":
         return None
     target = node["reftarget"].lstrip("~.")
@@ -276,7 +278,8 @@ def skip_tuple_fields(
     app: Any, what: str, name: str, obj: Any, skip: bool, options: Any
 ) -> bool | None:
     """Skip a named tuple's field accessors: its docstring's ``Attributes:`` documents
-    them."""
+    them.
+    """
     if (getattr(obj, "__doc__", None) or "").startswith("Alias for field number"):
         return True
     return None
