@@ -39,7 +39,8 @@ and the body holds placeholders, each replaced by what the CSV says:
   page; ``{{csv}}``: a link to the data;
 * ``{{STAT @ key=value, key=value : fmt}}``: the mean of statistic ``STAT`` (column
   ``STAT_mean``, or the column ``STAT`` itself for a key) at the one point whose keys
-  match; ``{{ci STAT @ ...}}`` the same with its interval; ``{{min STAT @ ...}}`` and
+  match (``key=a|b`` allows either value; ``study=NAME`` reads study ``NAME``'s data);
+  ``{{ci STAT @ ...}}`` the same with its interval; ``{{min STAT @ ...}}`` and
   ``{{max STAT @ ...}}`` the least and largest mean over the matching points;
   ``{{gain Y / X @ ...}}`` the least-squares slope through the origin of the means of
   ``Y`` against those of ``X`` over the matching points with ``X > 0`` (an ISS gain,
@@ -61,7 +62,7 @@ import math
 import re
 import shutil
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -273,31 +274,39 @@ def with_ci(points: Points, row: Mapping[str, str], stat: str, fmt: str, nan: st
     return f"{text} ({format(low, fmt)} to {format(high, fmt)})"
 
 
-def parse_where(text: str) -> dict[str, str]:
-    """``key=value, key=value`` as a dict."""
-    where = {}
+def parse_where(text: str) -> dict[str, Any]:
+    """``key=value, key=a|b`` as a dict (a value with ``|`` is a list of alternatives)."""
+    where: dict[str, Any] = {}
     for part in filter(None, (p.strip() for p in text.split(","))):
         key, eq, value = part.partition("=")
         if not eq:
             raise PageError(f"filter {part!r} is not key=value")
-        where[key.strip()] = value.strip()
+        alternatives = [v.strip() for v in value.split("|")]
+        where[key.strip()] = alternatives if len(alternatives) > 1 else alternatives[0]
     return where
 
 
-_PLACEHOLDER = re.compile(r"\{\{\s*(.+?)\s*\}\}")
+_PLACEHOLDER = re.compile(r"\{\{\s*(.+?)\s*\}\}", re.DOTALL)
+"""A placeholder; it may run over several lines of the template."""
 _EXPRESSION = re.compile(
     r"^(?:(?P<op>ci|min|max|gain)\s+)?(?P<stat>[\w.]+)(?:\s*/\s*(?P<x>[\w.]+))?"
     r"(?:\s*@\s*(?P<where>[^:]*?))?(?:\s*:\s*(?P<fmt>[^:]+))?$"
 )
 
 
-def evaluate(points: Points, expression: str) -> str:
-    """The text of one number placeholder (``{{ci swarm_ratio @ law=paper}}``)."""
+def evaluate(points: Points, expression: str, other: Callable[[str], Points] | None = None) -> str:
+    """The text of one number placeholder (``{{ci swarm_ratio @ law=paper}}``); the
+    filter ``study=NAME`` reads another study's points, through ``other``.
+    """
     match = _EXPRESSION.match(expression)
     if not match:
         raise PageError(f"cannot read placeholder {{{{{expression}}}}}")
     op, stat, x = match["op"], match["stat"], match["x"]
     where = parse_where(match["where"] or "")
+    if "study" in where:
+        if other is None:
+            raise PageError("study=... is not available here")
+        points = other(str(where.pop("study")))
     fmt = (match["fmt"] or ".3g").strip()
     if (op == "gain") != (x is not None):
         raise PageError(f"'Y / X' goes with gain, in {{{{{expression}}}}}")
@@ -341,6 +350,11 @@ def _sort_key(points: Points, keys: Sequence[str]) -> Any:
     return key
 
 
+def _row(cells: Iterable[str]) -> str:
+    """A Markdown table row (``|`` within a cell escaped, as tables need)."""
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+
 def _cell(points: Points, row: Mapping[str, str], column: Mapping[str, Any]) -> str:
     """One table cell: a statistic's mean (with its interval when ``ci``), or a key."""
     if "stat" in column:
@@ -368,7 +382,7 @@ def render_pivot(points: Points, rows: list[dict[str, str]], spec: Mapping[str, 
     xs = list(dict.fromkeys(r[across] for r in sorted(rows, key=order[1])))
     corner = str(spec.get("label") or f"{down} \\ {across}")
     header = [corner, *(f"`{points.display(across, x)}`" for x in xs)]
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines = [_row(header), "|" + "---|" * len(header)]
     for y in ys:
         cells = [f"`{points.display(down, y)}`"]
         for x in xs:
@@ -376,7 +390,7 @@ def render_pivot(points: Points, rows: list[dict[str, str]], spec: Mapping[str, 
             if len(match) > 1:
                 raise PageError(f"{len(match)} points at {down}={y}, {across}={x}, not one")
             cells.append(_cell(points, match[0], spec) if match else "")
-        lines.append("| " + " | ".join(cells) + " |")
+        lines.append(_row(cells))
     return "\n".join(lines)
 
 
@@ -394,9 +408,9 @@ def render_table(points: Points, spec: Mapping[str, Any]) -> str:
     if not columns:
         raise PageError("the table lists no columns")
     header = [str(c.get("label") or c.get("key") or c.get("stat")) for c in columns]
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(columns)]
+    lines = [_row(header), "|" + "---|" * len(columns)]
     for row in rows:
-        lines.append("| " + " | ".join(_cell(points, row, c) for c in columns) + " |")
+        lines.append(_row(_cell(points, row, c) for c in columns))
     return "\n".join(lines)
 
 
@@ -456,8 +470,14 @@ def render(study: Study, names: Mapping[str, Mapping[str, str]]) -> str:
     meta, body = split_front_matter(text)
     where = study.template if source is not None else "default template"
 
+    def other(name: str) -> Points:
+        rows = read_points(Study(name, study.figures, study.docs).data)
+        if not rows:
+            raise PageError(f"no data for study {name!r}")
+        return Points(rows, names)
+
     def fill(match: re.Match[str]) -> str:
-        expression = match[1]
+        expression = " ".join(match[1].split())
         try:
             if expression == "figure":
                 return f"![{study.name}](../sweeps/{study.name}.png)"
@@ -473,7 +493,7 @@ def render(study: Study, names: Mapping[str, Mapping[str, str]]) -> str:
                 if not spec:
                     raise PageError(f"no table {name or 'table'!r} in the front matter")
                 return render_table(points, spec)
-            return evaluate(points, expression)
+            return evaluate(points, expression, other)
         except PageError as err:
             raise PageError(f"{where}: {{{{{expression}}}}}: {err}") from None
 
@@ -482,7 +502,10 @@ def render(study: Study, names: Mapping[str, Mapping[str, str]]) -> str:
         f"{'`studies/' + study.name + '.in.md`' if source is not None else 'its default template'}"
         f" and `studies/data/{study.name}.csv`: edit the template, not this file. -->\n"
     )
-    return header + _PLACEHOLDER.sub(fill, body)
+    page = _PLACEHOLDER.sub(fill, body)
+    if "{{" in page or "}}" in page:
+        raise PageError(f"{where}: an unclosed placeholder")
+    return header + page
 
 
 def studies(docs: Path, figures: Path) -> list[str]:
