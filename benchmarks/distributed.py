@@ -30,6 +30,7 @@ import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.report import record
 from harness.agents import Swarm
 from harness.control import PaperControl, paper_law
 from harness.decentralised import RobotEstimators, algebraic_connectivity, message_counts
@@ -187,16 +188,7 @@ def bench_app(quick: bool) -> bool:
             steps = max(1, steps // 4)
         ms = app_loop(n_robots, radius, gradient, steps)
         name = f"N = {n_robots}, r = {radius}, gradient = {gradient}"
-        if target is None:
-            print(f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)")
-            continue
-        met = ms <= target
-        ok &= met
-        verdict = "OK" if met else "MISSED"
-        print(
-            f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)   "
-            f"target >= {1e3 / target:.0f} steps/s   {verdict}"
-        )
+        ok &= record(name, 1e3 / ms, "steps/s", None if target is None else 1e3 / target, ">=")
     return ok
 
 
