@@ -365,9 +365,15 @@ class FieldLaw:
             )
         grid = self.target.grid
         robots = own_velocities(grid, law.at_cells, own.p_hat, inp.positions, own.q_hat)
+        reference = None
+        if own.reference is not None:  # every robot holding the reference's estimate
+            shared = np.broadcast_to(own.reference, own.p_hat.shape)
+            reference = own_velocities(grid, law.at_cells, shared, inp.positions)
         if ff is not None:
-            robots = robots + interpolate(grid, ff.centres, inp.positions)
-        return Command(v, robots).capped(self.v_max)
+            drift = interpolate(grid, ff.centres, inp.positions)
+            robots = robots + drift
+            reference = None if reference is None else reference + drift
+        return Command(v, robots, reference).capped(self.v_max)
 
 
 class PaperControl(FieldLaw):

@@ -97,9 +97,12 @@ METRIC_KEYS = (
     "peak_speed",
     "tracking_error",
     "command_age",
+    "command_disagreement",
     "consensus_l2",
     "central_gap_l2",
     "messages",
+    "bytes",
+    "message_bytes",
     "mean_degree",
     "components",
     "algebraic_connectivity",
@@ -108,7 +111,7 @@ METRIC_KEYS = (
 (:class:`harness.metrics.FieldMetrics`), the swarm metrics
 (:class:`harness.metrics.SwarmTruth`), the motion metrics (:mod:`harness.motion`) and
 the numbers an estimator publishes
-(``Estimate.metrics``; the last six are the decentralised estimator's). A key no
+(``Estimate.metrics``; the last eight are the decentralised estimator's). A key no
 observer gave is ``null``."""
 
 ALWAYS_NUMBERS = ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")

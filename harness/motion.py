@@ -25,6 +25,12 @@ With robots the observer also reports what the plant says of the step just taken
 ``command_age``, the mean age of the commands the robots hold (s, the link,
 :class:`harness.link.Link`); ``null`` before the first step and without robots.
 
+In the decentralised loop (``estimator=distributed``) it reports the law's disagreement,
+``command_disagreement`` = ``(1/N) sum_k |v_k - v_ref,k|`` (length / s): robot ``k``'s
+own command against the command the law gives at ``X_k`` from the centralised
+reference's estimate (the grid gradient of ``p_hat_central``), :func:`command_disagreement`;
+``null`` in every other loop.
+
 :mod:`analysis.sweep` integrates ``effort`` over time (length^2 / s) and averages
 ``mean_speed`` over the tail (motion at steady state).
 """
@@ -44,6 +50,21 @@ MOTION_KEYS = ("effort", "mean_speed", "peak_speed")
 
 ROBOT_KEYS = ("tracking_error", "command_age")
 """What the plant reports of the step just taken (module docstring), in log order."""
+
+DISAGREEMENT_KEY = "command_disagreement"
+"""The decentralised loop's command disagreement (module docstring)."""
+
+
+def command_disagreement(rec: StepRecord) -> float | None:
+    """Mean over robots of ``|v_i - v_ref(X_i)|`` (length / s): each robot's own command
+    against the command the law gives at its position from the centralised reference's
+    estimate (:attr:`harness.records.Command.reference`); None without one.
+    """
+    command = rec.command
+    if command.robots is None or command.reference is None:
+        return None
+    d = command.robots - command.reference
+    return float(np.mean(np.hypot(d[0], d[1])))
 
 
 def speed_sums_reference(
@@ -104,6 +125,7 @@ class Motion:
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
         """The step's motion metrics."""
         values.update(motion(self.grid, rec))
+        values[DISAGREEMENT_KEY] = command_disagreement(rec)
         for key in ROBOT_KEYS:
             value = getattr(self.plant, key, None)
             values[key] = None if value is None else float(value)

@@ -69,6 +69,10 @@ class RobotEstimates:
         q_hat: Gradient estimates ``(N, 2M)`` (``x`` block then ``y`` block, 1 /
             length^3), or None when each robot takes the grid gradient of its own
             ``p_hat_i`` (a law evaluates that at the robot's cells).
+        reference: The centralised reference's density estimate ``(M,)`` (1 /
+            length^2) the robots are measured against, or None. A law given it also
+            reports the velocities it would command from it at the robots' positions
+            (:attr:`Command.reference`).
 
     The arrays may be an estimator's own state (a copy would cost ``N M`` values per
     step), like ``StepRecord.positions``: valid until the next step, which may
@@ -77,6 +81,7 @@ class RobotEstimates:
 
     p_hat: np.ndarray
     q_hat: np.ndarray | None
+    reference: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -153,10 +158,15 @@ class Command:
             the filters' transport model ``A(v)`` use it.
         robots: Velocities ``(2, N)`` (length / s) the robots move with, or None: the
             robots then move by the field's bilinear interpolant at their positions.
+        reference: Velocities ``(2, N)`` (length / s) the law commands at the robots'
+            positions from the centralised reference's estimate
+            (:attr:`RobotEstimates.reference`, with the grid gradient), or None;
+            compared with ``robots`` by the ``command_disagreement`` metric.
     """
 
     field: VelocityField | None
     robots: np.ndarray | None = None
+    reference: np.ndarray | None = None
 
     def capped(self, v_max: float | None) -> Command:
         """The command with every speed at most ``v_max`` (length / s; None: itself).
@@ -170,7 +180,8 @@ class Command:
             return self
         field = None if self.field is None else self.field.capped(v_max)
         robots = None if self.robots is None else cap_vectors(self.robots, v_max)
-        return Command(field, robots)
+        reference = None if self.reference is None else cap_vectors(self.reference, v_max)
+        return Command(field, robots, reference)
 
     def is_finite(self) -> bool:
         """True when every value of the field and of the robots' velocities is finite."""

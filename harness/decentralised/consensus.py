@@ -61,17 +61,47 @@ d_max``) gives ``|1 - eps lambda_N| < 1``: stable on every graph. On the complet
 equality with the centralised filter uses. A robot with no neighbours has ``W_ii = 1``
 and tracks its own kernel.
 
-*Why first order, not proportional-integral.* The PI form (Freeman, Yang and Lynch
-2006) tolerates arbitrary initial states and robots joining or leaving, at the price of
-a second state per robot (twice the memory and the messages) and a slower, oscillatory
-transient. Here every robot starts with ``z_i(0) = phi_i(0)`` (it knows its own
-position) and the swarm is fixed, so the first-order form keeps the invariant exactly
-and its error is the ISS bound above.
+*Proportional-integral form* (``estimator.consensus: pi``; Freeman, Yang and Lynch,
+"Stability and convergence properties of dynamic average consensus estimators", CDC
+2006, in the input-difference form of Kia et al., "Tutorial on dynamic average
+consensus", IEEE Control Systems 39(3), 2019). A second state ``w`` per robot (same
+shape as ``z``, ``w(0) = 0``) integrates the disagreement. With ``L_eps = eps L = I - W``
+and gains ``k_P``, ``k_I``, each step adds the input's change and runs ``m`` rounds of
 
-Messages. A *message* is one vector of ``F M`` float64 values sent by one robot to one
-neighbour in one consensus round. Per robot per step that is ``m deg_i`` messages, i.e.
-``m deg_i F M`` floats or ``8 m deg_i F M`` bytes; :func:`message_counts` reports the
-mean over robots (with a broadcast medium one transmission per round would do).
+    v       = z + phi(t + 1) - phi(t)            (first round of a step; v = z after)
+    z'      = v - k_P L_eps v - k_I L_eps w                                          (PI)
+    w'      = w + k_I L_eps z'
+
+``1^T L_eps = 0``, so ``1^T z`` changes only by the input's change: the invariant above
+holds as for the first-order form (the PI form with ``k_I = 0``, ``k_P = 1`` is it).
+*Ramps.* For a constant input change ``phi(t + 1) - phi(t) = c`` (robots moving at
+constant velocity, to first order) the first-order form settles at the lag
+``e_* = (I - W^m)^+ W^m Pi c``, which the smallest eigenvalues of ``L`` amplify as
+``1 / (eps lambda_2)``. The PI form's fixed point needs ``w' = w``, i.e. ``L_eps z' =
+0``: the output agrees (``e = 0``) and ``k_I L_eps w = (I - k_P L_eps) Pi c`` absorbs the
+ramp. So the PI form tracks a ramp with zero steady error (tested against the
+first-order lag formula). *Stability.* On the eigenvector of ``L_eps`` with eigenvalue
+``mu`` in ``(0, 2)`` one round maps ``(e, w)`` by ``[[1 - a, -b], [b (1 - a), 1 - b^2]]``
+with ``a = k_P mu``, ``b = k_I mu``: determinant ``1 - a``, trace ``2 - a - b^2``. Both
+eigenvalues lie inside the unit circle (Jury) iff ``|1 - a| < 1`` and ``b^2 < 4 - 2 a``,
+true for every ``mu < 2`` when ``0 < k_P <= 1`` and ``k_I^2 <= 1 - k_P``. The harness sets
+``k_P = 1 - k_I^2`` with ``k_I = estimator.integral_gain`` in ``(0, 1)`` (default 0.5,
+``k_P = 0.75``): stable on every graph the gain rule below admits. For small ``mu`` the
+two rates per round are about ``k_P mu`` and ``k_I^2 mu / k_P``. *ISS.* The error
+``(e, w)`` obeys a stable linear recursion driven by ``Pi Delta phi``, so it is bounded by
+a constant times ``sup ||Pi (Delta phi - Delta phi_prev)||`` (the input's change of
+change) plus a decaying transient; a constant drift costs nothing, white increments (the
+robots' noise) cost about as much as in the first-order form. *Cost.* A round needs two
+exchanges: ``(v, w)`` to compute ``z'``, then ``z'`` to update ``w``; three fields per
+neighbour per round against one.
+
+Messages. A *message* is what one robot sends one neighbour in one exchange: ``C``
+float64 values per field, ``C = F M`` grid values or ``C = K`` band coefficients
+(``estimator.messages: band``, :mod:`harness.decentralised.band`). Per robot per step
+the first-order form sends ``m deg_i`` messages of ``C`` values, the PI form ``2 m
+deg_i`` messages (``(v, w)`` of ``2 C`` values, then ``z'`` of ``C``);
+:func:`message_counts` reports the means over robots (with a broadcast medium one
+transmission per exchange would do).
 
 The compiled loops state their plain numpy equivalents in their docstrings; tests
 compare.
@@ -83,6 +113,7 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
+from harness.decentralised.band import BandMessages
 from harness.decentralised.graph import canonical_csr, laplacian, spatial_order
 from harness.decentralised.robot_kde import kernel_factors
 from harness.grid import Grid
@@ -297,14 +328,23 @@ def _add_kernel_increment(z, ky, kx, ky_old, kx_old, sign_old):  # pragma: no co
                 z[i, base + c] += a * kx[i, c] + b * kx_old[i, c]
 
 
+FORMS = ("first_order", "pi")
+"""The consensus forms: eq. ``DAC`` and eq. ``PI`` of the module docstring."""
+
+
 class DynamicAverageConsensus:
-    """First-order dynamic average consensus on the robots' kernels (eq. DAC in the
-    module docstring), state ``z`` of shape ``(N, F M)``.
+    """Dynamic average consensus on the robots' kernels: the first-order form (eq.
+    ``DAC`` in the module docstring) or the proportional-integral form (eq. ``PI``),
+    on grid fields or on the band's coefficients (:mod:`harness.decentralised.band`).
+
+    State ``z`` of shape ``(N, C)``: ``C = F M`` grid values, or ``C = K`` band
+    coefficients; the PI form keeps ``w`` of the same shape.
 
     Args:
         grid: The grid.
         bandwidth: Kernel bandwidth ``h`` (length).
-        gradient: Track the kernel's gradient as well (``F = 3``) or not (``F = 1``).
+        gradient: Track the kernel's gradient as well (``F = 3``) or not (``F = 1``;
+            the only choice with ``band``).
         rounds: Consensus rounds per step ``m >= 1``.
         gain: ``eps = gain / (1 + d_max)``, ``0 < gain <= 1``.
         initial_rounds: Rounds ``m_0 >= 0`` at ``t = 0``, before the first estimate:
@@ -312,6 +352,9 @@ class DynamicAverageConsensus:
             robot's first estimate is nearly its own kernel; ``m_0`` rounds bring the
             disagreement down by ``rho^{m_0}`` before the robots start moving.
         chunk: Robots per chunk of the neighbour-sum product (:func:`_mix_uniform`).
+        form: ``"first_order"`` or ``"pi"`` (:data:`FORMS`).
+        integral_gain: ``k_I`` in ``(0, 1)`` of the PI form (``k_P = 1 - k_I^2``).
+        band: Exchange band coefficients (``None``: grid fields).
     """
 
     def __init__(
@@ -323,25 +366,60 @@ class DynamicAverageConsensus:
         gain: float = 1.0,
         initial_rounds: int | None = None,
         chunk: int = 64,
+        form: str = "first_order",
+        integral_gain: float = 0.5,
+        band: BandMessages | None = None,
     ) -> None:
         if rounds < 1:
             raise ValueError(f"consensus rounds must be >= 1, got {rounds}")
         initial_rounds = rounds if initial_rounds is None else int(initial_rounds)
         if initial_rounds < 0:
             raise ValueError(f"initial rounds must be >= 0, got {initial_rounds}")
+        if form not in FORMS:
+            raise ValueError(f"consensus form must be one of {', '.join(FORMS)}, got {form!r}")
+        if not 0 < integral_gain < 1:
+            raise ValueError(f"integral gain must be in (0, 1), got {integral_gain}")
+        if band is not None and gradient:
+            raise ValueError("band messages carry the density only (gradient=grid)")
         self.grid, self.bandwidth, self.gradient = grid, bandwidth, gradient
         self.rounds, self.gain = int(rounds), gain
         self.initial_rounds, self.chunk = initial_rounds, int(chunk)
+        self.form, self.band = form, band
+        self.k_i = float(integral_gain) if form == "pi" else 0.0
+        self.k_p = 1.0 - self.k_i**2
         self.fields = 3 if gradient else 1
+        self.columns = band.size if band is not None else self.fields * grid.size
         self.z: np.ndarray | None = None
+        self.w: np.ndarray | None = None
         self._buf: np.ndarray | None = None
         self._factors: tuple[np.ndarray, ...] | None = None
+        self._coef: np.ndarray | None = None
         self.eps = 0.0
+
+    @property
+    def exchanges(self) -> int:
+        """Exchanges per round: 1 (first order) or 2 (PI: ``(v, w)``, then ``z'``)."""
+        return 2 if self.form == "pi" else 1
+
+    @property
+    def floats_per_round(self) -> int:
+        """Float64 values a robot sends one neighbour per round: ``C`` or ``3 C``."""
+        return 3 * self.columns if self.form == "pi" else self.columns
+
+    @property
+    def message_bytes(self) -> int:
+        """Bytes of the largest message: ``8 C`` (first order) or ``16 C`` (PI)."""
+        return 8 * self.columns * (2 if self.form == "pi" else 1)
 
     def _increment(self, factors: tuple[np.ndarray, ...], old: tuple[np.ndarray, ...] | None):
         assert self.z is not None
-        m = self.grid.size
         kx, dkx, ky, dky = factors
+        if self.band is not None:  # the coefficients' change, C_y ky_i (C_x kx_i)^T
+            coef = self.band.kernels(kx, ky)
+            self.z += coef if self._coef is None or old is None else coef - self._coef
+            self._coef = coef
+            return
+        m = self.grid.size
         parts = [(ky, kx)]
         if self.gradient:
             parts += [(ky, dkx), (dky, kx)]
@@ -354,23 +432,48 @@ class DynamicAverageConsensus:
             # a column block of z (strided rows): the kernel takes any layout
             _add_kernel_increment(self.z[:, f * m : (f + 1) * m], a, b, oa, ob, sign)
 
-    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray) -> None:
-        """``z <- W^rounds z``: by neighbour sums along a space-filling curve
+    def _mixer(self, w: sp.csr_matrix, positions: np.ndarray):
+        """``x -> W x`` into a new array: by neighbour sums along a space-filling curve
         (:func:`_mix_uniform`) when ``W``'s off-diagonal entries are all equal (always
         for :func:`consensus_weights`), by the general sparse product otherwise.
         """
-        assert self.z is not None and self._buf is not None
         if not w.has_sorted_indices:
             w = w.copy()
             w.sort_indices()
         eps = _uniform_offdiagonal(w.indptr, w.indices, w.data)
         order = spatial_order(positions) if np.isfinite(eps) else None
-        for _ in range(rounds):
+
+        def mix(x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+            x = np.ascontiguousarray(x)
+            out = np.empty_like(x) if out is None else out
             if order is not None:
-                _mix_uniform(w.indptr, w.indices, w.data, eps, order, self.chunk, self.z, self._buf)
+                _mix_uniform(w.indptr, w.indices, w.data, eps, order, self.chunk, x, out)
             else:
-                _spmm(w.indptr, w.indices, w.data, self.z, self._buf)
-            self.z, self._buf = self._buf, self.z
+                _spmm(w.indptr, w.indices, w.data, x, out)
+            return out
+
+        return mix
+
+    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray) -> None:
+        """``rounds`` rounds of eq. ``DAC`` (``z <- W z``) or eq. ``PI``."""
+        assert self.z is not None and self._buf is not None
+        mix = self._mixer(w, positions)
+        for _ in range(rounds):
+            if self.form == "first_order":
+                mix(self.z, self._buf)
+                self.z, self._buf = self._buf, self.z
+                continue
+            assert self.w is not None
+            c = self.columns
+            both = mix(np.concatenate([self.z, self.w], axis=1))  # exchange (v, w)
+            v, w_ = self.z, self.w
+            # z' = v - k_P L_eps v - k_I L_eps w,  with L_eps x = x - W x
+            z_new = v - self.k_p * (v - both[:, :c]) - self.k_i * (w_ - both[:, c:])
+            # w' = w + k_I L_eps z'  (exchange z')
+            self.w = w_ + self.k_i * (z_new - mix(z_new))
+            self.z = z_new
+        if self.form == "pi":
+            self._buf = np.empty_like(self.z)
 
     def kde(self) -> tuple[np.ndarray, np.ndarray]:
         """The exact KDE of the current positions, ``(p, grad p)`` of shapes ``(ny, nx)``
@@ -382,47 +485,84 @@ class DynamicAverageConsensus:
         n = kx.shape[0]
         return ky.T @ kx / n, np.stack([ky.T @ dkx / n, dky.T @ kx / n])
 
+    def observation(self) -> np.ndarray:
+        """What each robot's filters observe, ``(N, F M)`` grid fields: ``z`` itself, or
+        the band-limited fields ``Pi F_i`` its coefficients stand for.
+        """
+        assert self.z is not None, "call initialize first"
+        return self.z if self.band is None else self.band.fields(self.z)
+
     def initialize(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
-        """``z(0) = W^{m_0} phi(0)`` (``m_0`` initial rounds); returns ``z`` ``(N, F M)``."""
+        """``z(0) = W^{m_0} phi(0)`` (``m_0`` initial rounds of the form; ``w(0) = 0``);
+        returns the robots' observations (:meth:`observation`).
+        """
         n = positions.shape[1]
-        self.z = np.zeros((n, self.fields * self.grid.size))
+        self.z = np.zeros((n, self.columns))
+        self.w = np.zeros_like(self.z) if self.form == "pi" else None
         self._buf = np.empty_like(self.z)
+        self._coef = None
         self._factors = kernel_factors(self.grid, positions, self.bandwidth)
         self._increment(self._factors, None)
         self._mix(w, self.initial_rounds, positions)
-        return self.z
+        return self.observation()
 
     def step(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
-        """``z <- W^m (z + phi(t+1) - phi(t))``; returns ``z``."""
+        """Add the kernels' change, then ``m`` rounds; returns the observations."""
         assert self.z is not None and self._factors is not None, "call initialize first"
         factors = kernel_factors(self.grid, positions, self.bandwidth)
         self._increment(factors, self._factors)
         self._factors = factors
         self._mix(w, self.rounds, positions)
-        return self.z
+        return self.observation()
 
     def reference_step(
-        self, z: np.ndarray, phi_new: np.ndarray, phi_old: np.ndarray, w: sp.csr_matrix
-    ) -> np.ndarray:
-        """Plain statement of :meth:`step`: ``W^m (z + phi_new - phi_old)`` (scipy)."""
+        self,
+        z: np.ndarray,
+        phi_new: np.ndarray,
+        phi_old: np.ndarray,
+        w: sp.csr_matrix,
+        integral: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Plain statement of :meth:`step` (scipy): ``W^m (z + phi_new - phi_old)``, or
+        ``m`` rounds of eq. ``PI`` from ``(z + phi_new - phi_old, integral)``; returns
+        ``(z, w)`` (``w`` None for the first-order form).
+        """
         out = z + phi_new - phi_old
+        if self.form == "first_order":
+            for _ in range(self.rounds):
+                out = w @ out
+            return out, None
+        acc = np.zeros_like(out) if integral is None else integral
+
+        def lap(x: np.ndarray) -> np.ndarray:
+            return x - w @ x
+
         for _ in range(self.rounds):
-            out = w @ out
-        return out
+            out_new = out - self.k_p * lap(out) - self.k_i * lap(acc)
+            acc = acc + self.k_i * lap(out_new)
+            out = out_new
+        return out, acc
 
 
-def message_counts(adj: sp.csr_matrix, rounds: int, floats_per_message: int) -> dict[str, float]:
+def message_counts(
+    adj: sp.csr_matrix, rounds: int, floats_per_round: int, exchanges: int = 1
+) -> dict[str, float]:
     """Communication per robot per step (means over robots; see the module docstring).
+
+    Args:
+        adj: The step's communication graph.
+        rounds: Rounds per step.
+        floats_per_round: Float64 values a robot sends one neighbour in one round.
+        exchanges: Messages per neighbour per round.
 
     Returns:
         ``messages`` (messages / robot / step), ``floats`` (float64 values / robot /
         step), ``bytes`` (bytes / robot / step) and ``mean_degree``.
     """
     deg = float(adj.nnz) / adj.shape[0]
-    msgs = rounds * deg
     return {
-        "messages": msgs,
-        "floats": msgs * floats_per_message,
-        "bytes": 8.0 * msgs * floats_per_message,
+        "messages": rounds * exchanges * deg,
+        "floats": rounds * deg * floats_per_round,
+        "bytes": 8.0 * rounds * deg * floats_per_round,
         "mean_degree": deg,
     }

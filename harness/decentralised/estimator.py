@@ -26,7 +26,13 @@ from harness.components import (
     require,
     require_field,
 )
-from harness.decentralised.consensus import DynamicAverageConsensus, consensus_weights
+from harness.decentralised.band import BandMessages
+from harness.decentralised.consensus import (
+    FORMS,
+    DynamicAverageConsensus,
+    consensus_weights,
+    message_counts,
+)
 from harness.decentralised.filters import RobotFilters
 from harness.decentralised.gradient import GRADIENTS, GridGradient
 from harness.decentralised.graph import algebraic_connectivity, communication_graph
@@ -58,8 +64,38 @@ class DistributedEstimate:
     eps: float
 
 
+SHARES = ("density", "command")
+"""What the robots agree on (:class:`RobotEstimators`)."""
+
+MESSAGES = ("grid", "band")
+"""What a message carries: grid fields or the band's coefficients."""
+
+
 class RobotEstimators:
-    """Graph + dynamic average consensus + per-robot fast filters.
+    """Graph + dynamic average consensus + per-robot fast filters (+ agreement on the
+    law's input).
+
+    Per step: the communication graph at the robots' positions; ``rounds`` rounds of
+    dynamic average consensus (first-order or PI, on grid fields or band coefficients,
+    :class:`~harness.decentralised.consensus.DynamicAverageConsensus`); every robot's
+    filter on what it tracks. With ``share="command"`` the robots then agree on what the
+    law reads: ``command_rounds`` rounds of static average consensus on their filtered
+    estimates, started each step from each robot's own,
+
+        p_bar(0) = p_hat,     p_bar(k + 1) = W p_bar(k),     k < m_c,             (AGREE)
+
+    on the band's coefficients with ``messages="band"`` (each robot keeps its own part
+    outside the band, which the law's smoothing of the KDE barely carries). The filters
+    keep their own states; only the law's input is agreed. For a law affine in ``(p_hat,
+    q_hat)`` with the grid gradient, such as the paper's (eq. ``modified density
+    feedback law using estimates``: ``v = -alpha grad(p_hat / p_*) + sigma grad log
+    p_*``), the law of the agreed estimate is the agreed command field: ``W`` has rows
+    summing to one, so ``sum_j W_ij law(p_hat_j) = law(sum_j W_ij p_hat_j)``; robots
+    thus agree on the law's output without differentiating their disagreement again.
+    *Error.* With ``e_i`` the robots' disagreement after the filters, ``Pi e`` the part
+    off the mean, the agreed estimates' disagreement is ``W^{m_c} Pi e``, smaller by
+    ``rho^{m_c}`` (``rho`` of :mod:`~harness.decentralised.consensus`), and the law's ISS
+    gain w.r.t. estimation errors applies to it as to any estimation error.
 
     Args:
         grid: The grid.
@@ -74,6 +110,13 @@ class RobotEstimators:
         gradient: ``"grid"`` or ``"filter"`` (:mod:`harness.decentralised.gradient`).
         initial_rounds: Consensus rounds at ``t = 0`` before the first estimate
             (default ``rounds``; see :class:`DynamicAverageConsensus`).
+        consensus: ``"first_order"`` or ``"pi"``.
+        integral_gain: ``k_I`` of the PI form.
+        share: ``"density"`` or ``"command"`` (eq. ``AGREE``).
+        messages: ``"grid"`` or ``"band"``.
+        band_limit: ``kappa_c h`` of the band messages (finite).
+        command_rounds: ``m_c``, rounds of eq. ``AGREE`` per step with
+            ``share="command"``.
     """
 
     def __init__(
@@ -89,33 +132,67 @@ class RobotEstimators:
         gain: float = 1.0,
         gradient: str = "grid",
         initial_rounds: int | None = None,
+        consensus: str = "first_order",
+        integral_gain: float = 0.5,
+        share: str = "density",
+        messages: str = "grid",
+        band_limit: float = 2.5,
+        command_rounds: int = 1,
     ) -> None:
         if (radius is None) == (k_nearest is None):
             raise ValueError("give exactly one of radius and k_nearest")
+        if share not in SHARES or messages not in MESSAGES:
+            raise ValueError(f"share must be one of {SHARES} and messages one of {MESSAGES}")
         self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
+        self.share, self.command_rounds = share, int(command_rounds)
         self.filters = RobotFilters(
             grid, dt, MeasurementModel(n_robots, bandwidth, settings), gradient
         )
+        self.band = BandMessages(grid, band_limit / bandwidth) if messages == "band" else None
         self.consensus = DynamicAverageConsensus(
             grid, bandwidth, gradient=self.filters.gradient.tracks_kernel_gradient,
-            rounds=rounds, gain=gain, initial_rounds=initial_rounds,
+            rounds=rounds, gain=gain, initial_rounds=initial_rounds, form=consensus,
+            integral_gain=integral_gain, band=self.band,
         )  # fmt: skip
         self.adjacency: sp.csr_matrix | None = None
+        self._w: sp.csr_matrix | None = None
+        self._positions: np.ndarray | None = None
 
     def _graph(self, positions: np.ndarray) -> sp.csr_matrix:
         self.adjacency = communication_graph(positions, self.radius, self.k_nearest)
         w, self.consensus.eps = consensus_weights(self.adjacency, self.consensus.gain)
+        self._w, self._positions = w, positions
         return w
 
     def _split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         m = self.grid.size
         return z[:, :m], (z[:, m:] if self.consensus.gradient else None)
 
+    def agree(self, p_hat: np.ndarray) -> np.ndarray:
+        """Eq. ``AGREE``: ``command_rounds`` rounds of ``W`` on the robots' estimates (on
+        the band's coefficients with band messages); ``p_hat`` itself with
+        ``share="density"``.
+        """
+        if self.share != "command":
+            return p_hat
+        assert self._w is not None and self._positions is not None
+        mix = self.consensus._mixer(self._w, self._positions)
+        if self.band is None:
+            out = p_hat
+            for _ in range(self.command_rounds):
+                out = mix(out)
+            return out
+        coef = self.band.coefficients(p_hat)
+        outside = p_hat - self.band.fields(coef)
+        for _ in range(self.command_rounds):
+            coef = mix(coef)
+        return outside + self.band.fields(coef)
+
     def _estimate(self, y: np.ndarray) -> DistributedEstimate:
         f = self.filters
         assert f.x is not None and self.adjacency is not None
         q = f.gradient.estimate(f.x)
-        return DistributedEstimate(f.x, q, y, self.adjacency, self.consensus.eps)
+        return DistributedEstimate(self.agree(f.x), q, y, self.adjacency, self.consensus.eps)
 
     def initialize(self, positions: np.ndarray) -> DistributedEstimate:
         """Graph, ``z(0)`` and the filters' start from it, at ``t = 0``."""
@@ -133,11 +210,29 @@ class RobotEstimators:
         self.filters.step(y, a, y_g)
         return self._estimate(y)
 
+    def communication(self, adj: sp.csr_matrix) -> dict[str, float]:
+        """Per robot per step (means over robots): ``messages``, ``bytes`` (consensus
+        and, with ``share="command"``, eq. ``AGREE``), ``message_bytes`` (the largest
+        message, bytes) and ``mean_degree``.
+        """
+        c = self.consensus
+        counts = message_counts(adj, c.rounds, c.floats_per_round, c.exchanges)
+        largest = c.message_bytes
+        if self.share == "command":
+            per = self.band.size if self.band is not None else self.grid.size
+            agree = message_counts(adj, self.command_rounds, per)
+            counts["messages"] += agree["messages"]
+            counts["bytes"] += agree["bytes"]
+            largest = max(largest, 8 * per)
+        counts["message_bytes"] = float(largest)
+        return counts
+
     def memory_bytes(self) -> int:
-        """Bytes held in per-robot arrays (consensus state and buffer, filter states)."""
-        arrays = [self.consensus.z, self.consensus._buf, self.filters.x, self.filters.d]
+        """Bytes held in per-robot arrays (consensus states and buffer, filter states)."""
+        c = self.consensus
+        arrays = [c.z, c.w, c._buf, self.filters.x, self.filters.d]
         arrays += list(self.filters.gradient.arrays())
-        arrays += list(self.consensus._factors or ())
+        arrays += list(c._factors or ())
         return int(sum(a.nbytes for a in arrays if a is not None))
 
 
@@ -223,6 +318,12 @@ class DistributedEstimator:
         initial_rounds: int = 30,
         robot: int = 0,
         connectivity_every: int = 100,
+        consensus: str = "first_order",
+        integral_gain: float = 0.5,
+        share: str = "density",
+        messages: str = "grid",
+        band_limit: float = 2.5,
+        command_rounds: int = 1,
     ) -> None:
         self.grid = grid
         self.n_robots = integer("robots", robots, 1)
@@ -245,12 +346,25 @@ class DistributedEstimator:
         known = isinstance(gradient, str) and gradient in GRADIENTS
         require(known, "gradient", gradient, f"one of {', '.join(GRADIENTS)}")
         initial_rounds = integer("initial_rounds", initial_rounds, 0)
+        for key, value, options in (("consensus", consensus, FORMS), ("share", share, SHARES),
+                                    ("messages", messages, MESSAGES)):  # fmt: skip
+            known = isinstance(value, str) and value in options
+            require(known, key, value, f"one of {', '.join(options)}")
+        integral_gain = number("integral_gain", integral_gain, 0.0, strict=True)
+        require(integral_gain < 1.0, "integral_gain", integral_gain, "a number in (0, 1)")
+        band_limit = number("band_limit", band_limit, 0.0, strict=True)
+        require(bool(np.isfinite(band_limit)), "band_limit", band_limit, "a finite number > 0")
+        command_rounds = integer("command_rounds", command_rounds, 1)
+        require(messages == "grid" or gradient == "grid", "messages", messages,
+                "grid with gradient=filter (band messages carry the density only)")  # fmt: skip
         self.robot = integer("robot", robot, 0)
         require(self.robot < self.n_robots, "robot", robot, f"an index below robots = {robots}")
         self.connectivity_every = integer("connectivity_every", connectivity_every, 1)
         self.network = RobotEstimators(
             grid, dt, self.n_robots, h, settings, radius=radius, k_nearest=k_nearest,
             rounds=rounds, gain=gain, gradient=gradient, initial_rounds=initial_rounds,
+            consensus=consensus, integral_gain=integral_gain, share=share,
+            messages=messages, band_limit=band_limit, command_rounds=command_rounds,
         )  # fmt: skip
         measurement = MeasurementModel(self.n_robots, h, settings)
         self.central = LocalEngine(grid, model.sigma, dt, measurement)
@@ -264,12 +378,16 @@ class DistributedEstimator:
     @classmethod
     def memory_estimate(cls, grid: Grid, robots: int = 1, **params: object) -> MemoryEstimate:
         """Per robot: consensus state and buffer, kernel factors, the filters' states
-        and variances (with ``gradient: filter`` three more fields), about ``8 (4 + 3 +
-        (4 if filter)) M`` bytes, plus the grid arrays; the graph is ``O(N deg)``.
+        and variances (with ``gradient: filter`` three more fields, with ``consensus:
+        pi`` six: the integral state and a round's temporaries, with ``share: command``
+        two), about ``8 (4 + 3 + (4 if filter) + (6 if pi) + (2 if command)) M`` bytes,
+        plus the grid arrays; the graph is ``O(N deg)``.
         """
         n = robots if isinstance(robots, int) and robots > 0 else 1
         gradient = GRADIENTS.get(str(params.get("gradient", "grid")), GridGradient)
         fields = 7 + gradient.memory_fields
+        fields += 6 if params.get("consensus") == "pi" else 0
+        fields += 2 if params.get("share") == "command" else 0
         per_robot = 8 * fields * grid.size + 8 * (grid.nx + grid.ny) * 4
         return MemoryEstimate(default_memory(grid).nbytes + n * per_robot, "robots")
 
@@ -279,9 +397,8 @@ class DistributedEstimator:
         if self._steps % self.connectivity_every == 0:
             self._connectivity = algebraic_connectivity(adj)
         self._steps += 1
-        consensus = self.network.consensus
-        network = network_figures(g, est.p_hat, p_central, adj, consensus.rounds,
-                                  consensus.fields, self._connectivity)  # fmt: skip
+        network = network_figures(g, est.p_hat, p_central, adj,
+                                  self.network.communication(adj), self._connectivity)  # fmt: skip
         p_mean = est.p_hat.mean(axis=0).reshape(g.shape)
         if est.q_hat is None:
             q_mean = g.gradient(p_mean)  # G is linear: the mean of G p_hat_i
@@ -290,7 +407,8 @@ class DistributedEstimator:
         fields = {"p_hat_central": p_central, "p_hat_robot": est.p_hat[self.robot].reshape(g.shape)}
         return Estimate(
             p_mean, q_mean, *self.central.traces,
-            robots=RobotEstimates(est.p_hat, est.q_hat), fields=fields, metrics=network,
+            robots=RobotEstimates(est.p_hat, est.q_hat, np.ravel(p_central)),
+            fields=fields, metrics=network,
         )  # fmt: skip
 
     def check(self, plant: Plant, control: Control, **parts: object) -> None:
@@ -329,8 +447,19 @@ class DistributedEstimator:
         if inp.positions is None:
             raise ValueError("estimator=distributed needs robots (plant=agents)")
         robots = self.network.initialize(inp.positions)
-        p_central, _ = self.central.initialize(*self.network.consensus.kde())
+        p_central, _ = self.central.initialize(*self._kde())
         return self._estimate(robots, p_central)
+
+    def _kde(self) -> tuple[np.ndarray, np.ndarray]:
+        """The reference's observation: the exact KDE the robots' kernels make (band
+        limited, ``Pi p``, with band messages: what the robots can agree on), and its
+        analytic gradient.
+        """
+        p, grad = self.network.consensus.kde()
+        band = self.network.band
+        if band is not None:
+            p = band.project(p.reshape(1, -1)).reshape(p.shape)
+        return p, grad
 
     def step(self, inp: StepInput) -> Estimate:
         """New graph, consensus, every robot's filter step under the shared model
@@ -338,6 +467,6 @@ class DistributedEstimator:
         """
         assert inp.positions is not None and inp.a is not None and inp.v_applied is not None
         robots = self.network.step(inp.positions, inp.a)
-        p_kde, grad_kde = self.network.consensus.kde()  # the kernels consensus just used
+        p_kde, grad_kde = self._kde()  # the kernels consensus just used
         p_central, _ = self.central.step(p_kde, grad_kde, inp.v_applied, inp.a)
         return self._estimate(robots, p_central)

@@ -9,7 +9,6 @@ import numba
 import numpy as np
 import scipy.sparse as sp
 
-from harness.decentralised.consensus import message_counts
 from harness.decentralised.graph import n_components
 from harness.grid import Grid
 
@@ -60,15 +59,17 @@ def estimate_spread(grid: Grid, p_hat: np.ndarray, p_central: np.ndarray) -> tup
 
 def network_figures(
     grid: Grid, p_hat: np.ndarray, p_central: np.ndarray, adjacency: sp.csr_matrix,
-    rounds: int, fields: int, connectivity: float,
+    counts: dict[str, float], connectivity: float,
 ) -> dict[str, float]:  # fmt: skip
     """The decentralised loop's per-step metrics:
 
     ``consensus_l2`` = mean over robots of ``||p_hat_i - mean_j p_hat_j||`` (1 / length);
     ``central_gap_l2`` = mean over robots of ``||p_hat_i - p_hat_central||`` (1 / length),
-    against the centralised filters run alongside; ``messages`` = consensus messages per
-    robot per step (one message: one robot's tracked fields, ``F M`` float64, to one
-    neighbour in one round); ``mean_degree`` (neighbours per robot); ``components``
+    against the centralised filters run alongside; ``messages`` = messages per robot per
+    step (one message: what one robot sends one neighbour in one exchange,
+    :mod:`harness.decentralised.consensus`); ``bytes`` = bytes per robot per step (8 per
+    float64 value sent); ``message_bytes`` = bytes of the largest message; ``mean_degree``
+    (neighbours per robot); ``components``
     (connected components of the communication graph); ``algebraic_connectivity`` =
     ``lambda_2`` of the graph Laplacian (1; 0 when disconnected), as the caller gives it
     (the estimator evaluates it every ``estimator.connectivity_every`` steps and holds
@@ -79,21 +80,23 @@ def network_figures(
         p_hat: The robots' density estimates ``(N, M)``.
         p_central: The centralised reference's estimate.
         adjacency: The step's communication graph.
-        rounds: Consensus rounds per step.
-        fields: Fields of ``M`` cells per consensus message.
+        counts: ``messages``, ``bytes``, ``message_bytes`` and ``mean_degree`` per robot
+            per step (:meth:`harness.decentralised.RobotEstimators.communication`).
         connectivity: The graph's algebraic connectivity (evaluated by the caller, who
             may hold it between evaluations).
 
     Returns:
-        ``consensus_l2``, ``central_gap_l2``, ``messages``, ``mean_degree``,
-        ``components`` and ``algebraic_connectivity``.
+        ``consensus_l2``, ``central_gap_l2``, ``messages``, ``bytes``,
+        ``message_bytes``, ``mean_degree``, ``components`` and
+        ``algebraic_connectivity``.
     """
-    counts = message_counts(adjacency, rounds, fields * grid.size)
     spread, gap = estimate_spread(grid, p_hat, p_central)
     return {
         "consensus_l2": spread,
         "central_gap_l2": gap,
         "messages": counts["messages"],
+        "bytes": counts["bytes"],
+        "message_bytes": counts["message_bytes"],
         "mean_degree": counts["mean_degree"],
         "components": float(n_components(adjacency)),
         "algebraic_connectivity": connectivity,
