@@ -170,10 +170,10 @@ def figures_section(figures: Iterable[Figure]) -> str:
     for benchmark, group in by_benchmark.items():
         commands = sorted({f.command for f in group})
         module = sys.modules.get(benchmark)
-        doc = (getattr(module, "__doc__", None) or "").strip().splitlines()
+        doc = (getattr(module, "__doc__", None) or "").strip().split("\n\n", 1)[0]
         out.append(f"### `{benchmark}`\n")
         if doc:
-            out.append(doc[0].rstrip(".") + ".\n")
+            out.append(" ".join(doc.split()) + "\n")
         out.append("Command: " + ", ".join(f"`{c}`" for c in commands) + ".\n")
         out.append("| figure | measured | target | met |")
         out.append("|---|---|---|---|")

@@ -107,8 +107,9 @@ def robot_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
 
 
 def plant_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
-    """Median over ``repeats`` blocks of the mean plant step (ms, :meth:`advance`: the
-    link, the robots, the limit ``p_inf``) under the start's command, held fixed."""
+    """Median over ``repeats`` blocks of the mean plant step (ms,
+    :meth:`harness.plants.Agents.advance`: the link, the robots, the limit ``p_inf``) under
+    the start's command, held fixed."""
     parts, command, rng = _started(plant, n_robots)
     a = parts.model.matrix(command.field)
 
@@ -141,13 +142,13 @@ def main(argv: list[str] | None = None) -> int:
             ms = loop_step_ms(plant, 1024, args.steps, args.repeats)
             record(f"N = 1024: {plant}, closed-loop step", ms, "ms")
             record(f"N = 1024: {plant} / agents, closed-loop step", ms / base, "x")
-        print(f"N = {args.large:.0e}: robots' step, and the plant step (with the limit p_inf):")
+        print(f"N = {args.large:,d}: robots' step, and the plant step (with the limit p_inf):")
         for plant in ("agents", "unicycles"):
             ms = robot_step_ms(plant, args.large, 10, args.repeats)
             whole = plant_step_ms(plant, args.large, 10, args.repeats)
             target = LARGE_STEP_TARGET_MS if plant == "unicycles" else None
-            ok &= record(f"N = {args.large:.0e}: {plant}, robots' step", ms, "ms", target)
-            record(f"N = {args.large:.0e}: {plant}, plant step", whole, "ms")
+            ok &= record(f"N = {args.large:,d}: {plant}, robots' step", ms, "ms", target)
+            record(f"N = {args.large:,d}: {plant}, plant step", whole, "ms")
     return 0 if ok else 1
 
 

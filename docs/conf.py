@@ -24,6 +24,7 @@ not part of the reference either.
 from __future__ import annotations
 
 import importlib
+import pkgutil
 import re
 import sys
 from pathlib import Path
@@ -31,6 +32,8 @@ from typing import Any
 
 from docutils import nodes
 from sphinx.ext.napoleon.docstring import GoogleDocstring
+from sphinx.util.docutils import SphinxDirective
+from sphinx.util.parsing import nested_parse_to_nodes
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -47,7 +50,7 @@ extensions = [
 ]
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 root_doc = "index"
-exclude_patterns = ["_build", "studies/*.in.md", "studies/data", "README.md"]
+exclude_patterns = ["_build", "*.in.md", "**/*.in.md", "studies/data"]
 
 myst_enable_extensions = ["dollarmath", "colon_fence"]
 myst_heading_anchors = 3
@@ -66,7 +69,7 @@ napoleon_numpy_docstring = False
 nitpicky = True
 _EXTERNAL = (
     r"(numpy|np|scipy|sp|pathlib|Path|os|collections|typing|omegaconf|hydra|xarray|xr"
-    r"|yaml|foxglove|mcap|numba|matplotlib|threadpoolctl|ot)(\..*)?"
+    r"|yaml|foxglove|mcap|numba|matplotlib|threadpoolctl|ot|datetime)(\..*)?"
 )
 nitpick_ignore_regex = [
     (r"py:(class|exc|func|meth|data|attr|obj)", _EXTERNAL),
@@ -200,9 +203,24 @@ def free_text_returns() -> None:
 # -- references by a shorter path ---------------------------------------------------------
 
 
-def _documented(env: Any) -> dict[str, str]:
-    """Full name -> object type of every documented Python object."""
-    return {name: obj.objtype for name, obj in env.domains["py"].objects.items()}
+def _documented(env: Any) -> dict[str, Any]:
+    """Every documented Python object by its full name."""
+    return env.domains["py"].objects
+
+
+_TAILS: dict[tuple[int, int], dict[str, list[str]]] = {}
+
+
+def _by_tail(objects: dict[str, Any]) -> dict[str, list[str]]:
+    """The documented objects' full names by their last component (built once per set)."""
+    key = (id(objects), len(objects))
+    if key not in _TAILS:
+        _TAILS.clear()
+        index: dict[str, list[str]] = {}
+        for name in objects:
+            index.setdefault(name.rsplit(".", 1)[-1], []).append(name)
+        _TAILS[key] = index
+    return _TAILS[key]
 
 
 def _mro_names(module: str | None, cls: str | None) -> list[str]:
@@ -251,6 +269,8 @@ def resolve_short_name(app: Any, env: Any, node: Any, contnode: Any) -> Any:
     if node.get("refdomain") != "py":
         return None
     target = node["reftarget"].lstrip("~.")
+    if re.fullmatch(_EXTERNAL, target):
+        return None
     objects = _documented(env)
     module = node.get("py:module")
     candidates = [
@@ -262,7 +282,8 @@ def resolve_short_name(app: Any, env: Any, node: Any, contnode: Any) -> Any:
         found = _canonical(target) or (_canonical(f"{module}.{target}") if module else None)
         candidates = [found] if found in objects else []
     if not candidates:
-        candidates = [name for name in objects if name.endswith("." + target)]
+        tail = target.rsplit(".", 1)[-1]
+        candidates = [n for n in _by_tail(objects).get(tail, []) if n.endswith("." + target)]
     if len(candidates) != 1:
         return None
     full = candidates[0]
@@ -285,9 +306,67 @@ def skip_tuple_fields(
     return None
 
 
+# -- the reference, from the package tree ------------------------------------------------
+
+
+def modules(package: str) -> list[str]:
+    """``package`` (when its ``__init__`` has a docstring) and its modules, not the
+    subpackages' (each subpackage is a page of its own).
+    """
+    pkg = importlib.import_module(package)
+    names = [package] if (pkg.__doc__ or "").strip() else []
+    for info in pkgutil.iter_modules(pkg.__path__):
+        if not info.ispkg:
+            names.append(f"{package}.{info.name}")
+    return names
+
+
+def _summary(module: str) -> str:
+    """The first sentence of a module's docstring, on one line."""
+    doc = (importlib.import_module(module).__doc__ or "").strip()
+    first = " ".join(doc.split("\n\n", 1)[0].split())
+    return first.replace("|", "\\|")
+
+
+class AutoModules(SphinxDirective):
+    """``.. automodules:: PACKAGE``: a section with ``automodule`` for the package and
+    each of its modules, so a new module joins the reference without an edit here.
+    """
+
+    required_arguments = 1
+
+    def run(self) -> list[nodes.Node]:
+        """The sections, parsed."""
+        lines = []
+        for module in modules(self.arguments[0]):
+            title = f"``{module}``"
+            lines += [title, "-" * len(title), "", f".. automodule:: {module}", ""]
+        return nested_parse_to_nodes(self.state, "\n".join(lines), allow_section_headings=True)
+
+
+class ModulesTable(SphinxDirective):
+    """``.. modules-table:: PACKAGE [PACKAGE ...]``: every module with the first
+    sentence of its docstring, linked to its reference.
+    """
+
+    required_arguments = 1
+    optional_arguments = 20
+
+    def run(self) -> list[nodes.Node]:
+        """The table, parsed."""
+        lines = [".. list-table::", "   :header-rows: 1", "   :widths: 1 3", ""]
+        lines += ["   * - module", "     - what it is", ""]
+        for package in self.arguments:
+            for module in modules(package):
+                lines += [f"   * - :mod:`{module}`", f"     - {_summary(module)}", ""]
+        return nested_parse_to_nodes(self.state, "\n".join(lines), allow_section_headings=False)
+
+
 def setup(app: Any) -> dict[str, bool]:
     """Connect the hooks above."""
     free_text_returns()
+    app.add_directive("automodules", AutoModules)
+    app.add_directive("modules-table", ModulesTable)
     app.connect("autodoc-process-docstring", joined_names, priority=400)
     app.connect("autodoc-process-docstring", plain_text_docstring, priority=600)
     app.connect("autodoc-skip-member", skip_tuple_fields)
