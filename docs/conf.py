@@ -82,6 +82,7 @@ nitpick_ignore = [
     ("py:attr", "gradient"),  # harness/decentralised/filters.py, RobotFilters.gradient
 ]
 
+highlight_language = "none"  # docstrings' literal blocks are formulas, not code
 html_theme = "furo"
 html_title = "densityloop"
 html_static_path: list[str] = []
