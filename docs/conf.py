@@ -1,24 +1,31 @@
 """Sphinx configuration of the densityloop documentation (``make docs``).
 
 The build runs with warnings as errors and in nitpicky mode (every cross-reference must
-resolve). Three things here let the docstrings stay as they are, plain text written to
-be read in a terminal as much as in a browser:
+resolve). The hooks here let the docstrings stay as they are, plain text written to be
+read in a terminal as much as in a browser:
 
 * :func:`plain_text_docstring` escapes ``|`` (norms such as ``|v_k|``, which
   reStructuredText reads as substitutions) and turns a paragraph that ends with ``:``
   and is followed by an indented block (formulas, the docstrings' usual layout) into a
   literal block;
-* :func:`free_text_returns` keeps napoleon from reading the words before the first
-  colon of a ``Returns:`` section or of an attribute's docstring as a type when they
-  are a sentence;
+* :func:`joined_names` joins an ``Args:`` entry that names several parameters over two
+  lines, and :func:`free_text_returns` keeps napoleon from reading the words before the
+  first colon of a ``Returns:`` section or of an attribute's docstring as a type when
+  they are a sentence;
+* :func:`skip_tuple_fields` leaves a named tuple's fields to its ``Attributes:``;
 * :func:`resolve_short_name` resolves a reference that names an object by a shorter
   path than its full one (``Grid.l2``, ``ConfigError`` from another module, a method
-  inherited from a base class) when exactly one documented object fits.
+  inherited from a base class, a name a package re-exports) when exactly one documented
+  object fits.
+
+The directives ``automodules`` and ``modules-table`` build the API reference from the
+package tree, so a new module joins it without an edit.
 
 References to other projects (numpy, scipy, the standard library, Hydra, omegaconf,
 xarray, foxglove) are left unlinked: the build reaches no network, so there is no
 inventory to link them to (``nitpick_ignore_regex``). Private helpers (``_name``) are
-not part of the reference either.
+not part of the reference either. ``nitpick_ignore`` lists the few attributes without a
+docstring of their own that docstrings refer to.
 """
 
 from __future__ import annotations
