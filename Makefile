@@ -25,6 +25,7 @@ test: $(STAMP) ## Static checks (ruff, mypy), the documentation build and the te
 	$(PY) -m ruff format --check .
 	$(PY) -m mypy
 	$(MAKE) --no-print-directory docs
+	scripts/viewer_deps.sh  # chromium and viewer/node_modules for tests/test_viewer.py; never fails
 	$(PY) -m pytest
 
 test-slow: $(STAMP) ## Run only the slow tests

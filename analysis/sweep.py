@@ -66,9 +66,11 @@ record. Swarm statistics (1/length, ``swarm_w2`` in length; empty without robots
 ``ms_per_step``, the run's wall time per step (ms, from ``wall_s`` and the number of steps).
 Decentralised statistics (empty for other runs): ``central_gap_tail_mean``,
 ``consensus_tail_mean`` (1/length), ``messages_tail_mean`` (messages per robot per step),
+``bytes_tail_mean`` (bytes per robot per step), ``message_bytes_tail_mean`` (bytes of the
+largest message), ``disagreement_tail_mean`` (length / s),
 ``degree_tail_mean``, ``components_tail_mean``, ``connectivity_tail_mean`` (tail means
-of ``central_gap_l2``, ``consensus_l2``, ``messages``, ``mean_degree``, ``components``,
-``algebraic_connectivity``).
+of ``central_gap_l2``, ``consensus_l2``, ``messages``, ``bytes``, ``message_bytes``,
+``command_disagreement``, ``mean_degree``, ``components``, ``algebraic_connectivity``).
 Motion statistics (:func:`motion_stats`): ``effort_integral`` (length^2 / s),
 ``speed_tail_mean`` (length / s), ``settling_time`` (s; ``inf``: never settled),
 ``tracking_tail_mean`` (length / s) and ``age_tail_mean`` (s), the tail means of the
@@ -134,6 +136,9 @@ STATS = (
     "central_gap_tail_mean",
     "consensus_tail_mean",
     "messages_tail_mean",
+    "bytes_tail_mean",
+    "message_bytes_tail_mean",
+    "disagreement_tail_mean",
     "degree_tail_mean",
     "components_tail_mean",
     "connectivity_tail_mean",
@@ -266,6 +271,9 @@ NETWORK_STATS = {
     "central_gap_tail_mean": "central_gap_l2",
     "consensus_tail_mean": "consensus_l2",
     "messages_tail_mean": "messages",
+    "bytes_tail_mean": "bytes",
+    "message_bytes_tail_mean": "message_bytes",
+    "disagreement_tail_mean": "command_disagreement",
     "degree_tail_mean": "mean_degree",
     "components_tail_mean": "components",
     "connectivity_tail_mean": "algebraic_connectivity",
@@ -677,13 +685,15 @@ def convergence_figure(rows, series, varied: list[str], out: Path) -> list[Path]
 class Study:
     """What a figure draws from: the completed jobs' rows (``usable``, with
     statistics), their metrics by job directory, the varied config keys (``seed``
-    included) and the output directory.
+    included), the output directory, the sweep directory and the tail fraction.
     """
 
     usable: list[dict[str, Any]]
     series: dict[str, Any]
     varied: list[str]
     out: Path
+    sweep_dir: Path | None = None
+    tail: float = 0.25
 
 
 def _iss(study: Study) -> list[Path]:
@@ -770,6 +780,15 @@ def _law_figure(name: str, module: str = "laws") -> Callable[[Study], list[Path]
     return draw
 
 
+FRONTIER_KEYS = (
+    "estimator.consensus",
+    "estimator.share",
+    "estimator.messages",
+    "estimator.radius",
+    "estimator.rounds",
+)
+"""The keys the ``distributed_frontier`` figure draws against (:mod:`analysis.frontier`)."""
+
 FIGURES: dict[str, Figure] = {
     "iss_gain": Figure(_iss, ("law", "estimator.delta")),
     "laws_n": Figure(_law_figure("draw_laws_n"), ("law", "agents.n")),
@@ -786,6 +805,7 @@ FIGURES: dict[str, Figure] = {
     "debias_n": Figure(_debias, ("agents.n", "kde.debias")),
     "agents_n": Figure(_agents, ("agents.n",)),
     "distributed_r": Figure(_network, ("estimator.radius",)),
+    "distributed_frontier": Figure(_law_figure("draw_frontier", "frontier"), FRONTIER_KEYS),
     "conv_grid_agents": Figure(_grid, ("grid.n",)),
     "convergence": Figure(_convergence),
 }
@@ -965,7 +985,8 @@ def main(argv: list[str] | None = None) -> int:
     write_points(points(rows), out / "sweep_aggregated.csv")
     written = [out / "sweep.csv", out / "sweep_aggregated.csv"]
     if usable:
-        written += figure.draw(Study(usable, series, keys, out))
+        tail = args.tail if args.tail is not None else study.tail
+        written += figure.draw(Study(usable, series, keys, out, args.sweep_dir, tail))
     bad = [r for r in rows if r.get("state") != "completed"]
     print(f"{len(rows)} jobs, {len(bad)} not completed")
     for p in written:

@@ -33,7 +33,7 @@ from threadpoolctl import threadpool_limits
 from benchmarks.report import record
 from harness.agents import Swarm
 from harness.control import PaperControl, paper_law
-from harness.decentralised import RobotEstimators, algebraic_connectivity, message_counts
+from harness.decentralised import RobotEstimators, algebraic_connectivity
 from harness.decentralised.density import jacobi_sweeps, stencil_coefficients
 from harness.decentralised.graph import n_components
 from harness.densities import DEFAULT_TARGET, Box, Target
@@ -129,7 +129,7 @@ def run(
         clock("(components, logged)", lambda e=e: n_components(e.adjacency))
         clock("(algebraic connectivity, logged)", lambda e=e: algebraic_connectivity(e.adjacency))
     graph = f"radius {radius}" if radius is not None else f"k = {k}"
-    counts = message_counts(est.adjacency, est.consensus.rounds, est.consensus.fields * g.size)
+    counts = est.communication(est.adjacency)
     tracked = est.filters.gradient.tracks_kernel_gradient  # the gradient filter's solves
     extra = f", PCG iterations {est.filters.poisson.iterations}" if tracked else ""
     print(
@@ -145,11 +145,13 @@ def run(
     clock.report(skip=2 if warmup == 0 else 0, target=target)
 
 
-def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
+def app_loop(
+    n_robots: int, radius: float, gradient: str, steps: int, design: str = "grid"
+) -> float:
     """Milliseconds per step of the loop the app builds with ``estimator=distributed``
-    (robots, plant's KDE and ``N -> infinity`` limit, graph, consensus, per-robot
-    filters, the centralised reference filters, network metrics, per-robot law),
-    median over ``steps`` steps after two untimed ones.
+    and ``+design=design`` (robots, plant's KDE and ``N -> infinity`` limit, graph,
+    consensus, per-robot filters, the centralised reference filters, network metrics,
+    per-robot law), median over ``steps`` steps after two untimed ones.
     """
     from harness.api import compose as compose_config
     from harness.build import build
@@ -161,6 +163,7 @@ def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
             f"agents.n={n_robots}",
             f"estimator.radius={radius}",
             f"estimator.gradient={gradient}",
+            f"+design={design}",
         ]
     )
     parts = build(cfg)
@@ -177,18 +180,76 @@ def app_loop(n_robots: int, radius: float, gradient: str, steps: int) -> float:
     return 1e3 * float(np.median(times))
 
 
+DESIGNS = ("grid", "band", "pi_band", "command_band")
+"""The designs of ``conf/design/`` (the ``distributed_frontier`` study's)."""
+
+
 def bench_app(quick: bool) -> bool:
-    """The app-built decentralised loop against its target."""
+    """The app-built decentralised loop against its targets: N = 1024 with the baseline
+    design, and N = 4096 at r = 0.1 with every design (the target is for the fastest).
+    """
     print("Decentralised loop as the app builds it (n = 30, estimator=distributed):")
     ok = True
-    cases = [(1024, 0.1, "grid", 200, TARGET_MS), (4096, 0.05, "grid", 20, None)]
-    cases.append((1024, 0.1, "filter", 3, TARGET_MS))
-    for n_robots, radius, gradient, steps, target in cases:
+    cases = [(1024, 0.1, "grid", 200, TARGET_MS, "grid")]
+    cases += [(4096, 0.1, "grid", 20, None, d) for d in DESIGNS]
+    cases.append((1024, 0.1, "filter", 3, TARGET_MS, "grid"))
+    fastest = np.inf
+    for n_robots, radius, gradient, steps, target, design in cases:
         if quick:
             steps = max(1, steps // 4)
-        ms = app_loop(n_robots, radius, gradient, steps)
-        name = f"N = {n_robots}, r = {radius}, gradient = {gradient}"
+        ms = app_loop(n_robots, radius, gradient, steps, design)
+        if n_robots == 4096:
+            fastest = min(fastest, ms)
+        name = f"N = {n_robots}, r = {radius}, gradient = {gradient}, {design}"
         ok &= record(name, 1e3 / ms, "steps/s", None if target is None else 1e3 / target, ">=")
+    name = "N = 4096, r = 0.1, fastest design"
+    ok &= record(name, 1e3 / fastest, "steps/s", 1e3 / TARGET_MS, ">=")
+    return ok
+
+
+def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> None:
+    """Build the app's loop, take ``steps`` steps, print the peak resident memory against
+    the estimate the harness prints and checks before a run
+    (:func:`harness.checks.check_memory`); run in a process of its own.
+    """
+    import resource
+
+    from harness.api import compose as compose_config
+    from harness.build import build
+    from harness.checks import check_memory
+    from harness.grid import Grid as GridType
+    from harness.loop import ClosedLoop
+
+    overrides = ["estimator=distributed", f"agents.n={n_robots}", f"estimator.radius={radius}",
+                 f"+design={design}"]  # fmt: skip
+    cfg = compose_config(overrides)
+    estimate = check_memory(cfg, GridType.square(int(cfg.grid.n), float(cfg.grid.length)))
+    parts = build(cfg)
+    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, DT,
+                      np.random.default_rng(0))  # fmt: skip
+    loop.start()
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        loop.step()
+    ms = 1e3 * (time.perf_counter() - t0) / steps
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
+    name = f"N = {n_robots}, r = {radius}, {design}"
+    record(f"{name}: peak memory (target: the estimate)", peak / 2**20, "MiB", estimate / 2**20)
+    record(f"{name}: step time, the memory case", ms, "ms")
+
+
+def bench_memory() -> bool:
+    """N = 16384 runs within the memory estimate (a process per design)."""
+    import subprocess
+    import sys
+
+    print("Memory at N = 16384, r = 0.1 (peak resident set over 3 steps):")
+    ok = True
+    for design in DESIGNS:
+        cmd = [sys.executable, "-m", "benchmarks.distributed", "--memory", "16384", design]
+        out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        print(out.stdout.rstrip() or f"  {design}: failed: {out.stderr.strip()[-300:]}")
+        ok &= out.returncode == 0 and "OK" in out.stdout
     return ok
 
 
@@ -206,12 +267,20 @@ def main() -> None:
     )
     parser.add_argument("--quick", action="store_true", help="fewer steps (with --app)")
     parser.add_argument(
+        "--memory", nargs=2, metavar=("N", "DESIGN"), help="one memory case (in its own process)"
+    )
+    parser.add_argument(
         "--gradient-filter", action="store_true", help="also time gradient='filter' (slow)"
     )
     args = parser.parse_args()
+    if args.memory:
+        with threadpool_limits(1):
+            memory_case(int(args.memory[0]), 0.1, args.memory[1])
+        return
     if args.app:
         with threadpool_limits(1):
             ok = bench_app(args.quick)
+            ok &= bench_memory()
         print("all targets met" if ok else "some targets MISSED")
         return
     numba.set_num_threads(args.threads)

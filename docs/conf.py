@@ -75,8 +75,14 @@ napoleon_numpy_docstring = False
 
 nitpicky = True
 _EXTERNAL = (
-    r"(numpy|np|scipy|sp|pathlib|Path|os|collections|typing|omegaconf|hydra|xarray|xr"
-    r"|yaml|foxglove|mcap|numba|matplotlib|threadpoolctl|ot|datetime)(\..*)?"
+    r"(numpy|np|scipy|sp|omegaconf|hydra|xarray|xr|yaml|foxglove|mcap|mcap_protobuf|google"
+    r"|numba|matplotlib|plt|threadpoolctl|ot|tqdm|websockets|submitit|joblib|filterpy"
+    # the standard library
+    r"|Path|pathlib|os|sys|io|collections|typing|types|abc|datetime|time|socket|threading"
+    r"|subprocess|signal|json|argparse|logging|contextlib|enum|functools|itertools"
+    r"|dataclasses|tempfile|shutil|re|math|concurrent|multiprocessing|asyncio|queue"
+    r"|selectors|http|urllib|errno|resource|platform|inspect|importlib|warnings|numbers"
+    r"|random|struct|hashlib|zlib|csv|textwrap|string|copy|weakref|uuid|base64)(\..*)?"
 )
 nitpick_ignore_regex = [
     (r"py:(class|exc|func|meth|data|attr|obj)", _EXTERNAL),

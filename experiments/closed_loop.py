@@ -68,7 +68,8 @@ def main(cfg: DictConfig) -> None:
     hc = HydraConfig.get()
     out = Path(hc.runtime.output_dir)
     if hc.mode == RunMode.MULTIRUN:
-        run_job(cfg, out, hc.job.num, list(hc.overrides.task))  # outcome in job_status.json
+        sweep_dir = Path(hc.sweep.dir)
+        run_job(cfg, out, hc.job.num, list(hc.overrides.task), sweep_dir)  # in job_status.json
         return
     try:
         result = run(checked(cfg), out)

@@ -19,14 +19,17 @@ Hydra cannot resume a sweep. Each job of a multirun therefore
   the error and returns;
 * writes ``job_status.json`` next to its log: job number, overrides, state, reason,
   wall time (s) of its last real run, ``runs`` (how many times it actually ran), the
-  config hash and the pid of its process while it runs.
+  config hash, the pid of its process while it runs, and for the progress line when it
+  started and ended in which sweep and whether it was skipped.
 
-:class:`SweepStatusCallback` (a Hydra callback) collects these files when the
-multirun ends, prints a table (job, overrides, state, runs, wall time) and writes it as
-``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory; it exits with
-status 1 when a job did not complete (invalid, failed, killed, diverged). SIGINT,
-SIGTERM and SIGHUP to the sweep's main process are passed on to the running jobs
-(which finalise their logs as ``aborted``), and the table is written before the
+:class:`SweepStatusCallback` (a Hydra callback) shows the sweep's progress while it
+runs (jobs done, running, failed, of how many, the time elapsed and left;
+:mod:`harness.sweep_progress`, ``docs/sweep_progress.md``), collects the status files
+when the multirun ends, prints a table (job, overrides, state, runs, wall time) and
+writes it as ``sweep_status.csv`` and ``sweep_status.md`` in the sweep directory; it
+exits with status 1 when a job did not complete (invalid, failed, killed, diverged).
+SIGINT, SIGTERM and SIGHUP to the sweep's main process are passed on to the running
+jobs (which finalise their logs as ``aborted``), and the table is written before the
 sweep exits (:func:`finish_sweep`, called by the entry point).
 
 Job directories are named by the job's overrides (:func:`job_dir_name`, the resolver
@@ -52,14 +55,14 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numba
 from hydra.experimental.callback import Callback
 from mcap.reader import make_reader
 from mcap.records import Message, Metadata
 from mcap.stream_reader import StreamReader
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from harness.build import Experiment, build
 from harness.checks import ConfigError, check_disk, config_line
@@ -67,6 +70,7 @@ from harness.components import ParameterError
 from harness.identity import code_change, code_identity, config_hash
 from harness.mcap_log import LOG_FILE
 from harness.run import RunResult, Terminated, run
+from harness.sweep_progress import MODES, SweepMonitor, count_jobs, read_run
 
 STATUS_FILE = "job_status.json"
 LOCK_FILE = ".job.lock"
@@ -272,6 +276,8 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
         reason = str(status.get("reason", "") or "")
         if not status:
             reason = "job_status.json missing or unreadable"
+        elif state == "missing" and not reason:
+            reason = "the job started but recorded no outcome"
         logged, logged_reason = log_status(job_dir / LOG_FILE)
         if state == "running":
             pid = _int(status.get("pid"), 0)
@@ -423,6 +429,9 @@ def finish_sweep(reason: str = "") -> int | None:
 
 
 def _report(sweep_dir: Path, interrupted: str = "") -> int:
+    monitor = _ACTIVE.get("monitor")
+    if monitor is not None:
+        monitor.stop(bool(interrupted))  # its last line comes before the table
     rows = collect(sweep_dir)
     _ACTIVE["written"] = True
     print(f"\nsweep {sweep_dir}: {len(rows)} jobs")
@@ -445,17 +454,33 @@ def _report(sweep_dir: Path, interrupted: str = "") -> int:
 
 
 class SweepStatusCallback(Callback):
-    """Passes signals on to the jobs, and prints and writes the status table when a
-    multirun ends.
+    """Shows the sweep's progress while it runs, passes signals on to the jobs, and
+    prints and writes the status table when a multirun ends.
+
+    Args:
+        progress: The progress line (:mod:`harness.sweep_progress`): ``auto`` (redrawn
+            in place on a terminal, plain lines elsewhere or when ``CI`` is ``true``),
+            ``tty``, ``plain`` or ``off``.
+        progress_every: Least time between two plain lines (s).
     """
 
+    def __init__(self, progress: str = "auto", progress_every: float = 10.0) -> None:
+        self.progress, self.progress_every = progress, progress_every
+
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        """Check that the sweep directory can be created and written (one line and exit
-        status 2 otherwise), remember the sweep and take over SIGINT, SIGTERM and SIGHUP.
+        """Check that the sweep directory can be created and written and the progress
+        settings (one line and exit status 2 otherwise), remember the sweep, take over
+        SIGINT, SIGTERM and SIGHUP and start the progress line.
         """
         _ACTIVE.clear()
+        key = "hydra.callbacks.sweep_status"
         try:
             usable_dir("hydra.sweep.dir", Path(str(config.hydra.sweep.dir)))
+            if self.progress not in MODES:
+                raise ConfigError(f"{key}.progress", self.progress, f"one of {', '.join(MODES)}")
+            every = self.progress_every
+            if not isinstance(every, (int, float)) or isinstance(every, bool) or not every >= 0:
+                raise ConfigError(f"{key}.progress_every", every, "a number of seconds >= 0")
         except ConfigError as err:
             print(err, file=sys.stderr)
             sys.exit(2)
@@ -463,9 +488,20 @@ class SweepStatusCallback(Callback):
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
                 signal.signal(sig, _main_signal)
+        monitor = SweepMonitor(
+            Path(str(config.hydra.sweep.dir)),
+            count_jobs(config),
+            mode=self.progress,
+            every=float(every),
+            status_file=STATUS_FILE,
+        )
+        monitor.start()
+        _ACTIVE["monitor"] = monitor
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
-        """Collect the jobs' status files; exit 1 when a job did not complete."""
+        """Stop the progress line, collect the jobs' status files; exit 1 when a job did
+        not complete.
+        """
         _ACTIVE.setdefault("dir", str(config.hydra.sweep.dir))
         status = _report(Path(config.hydra.sweep.dir))
         if status:
@@ -713,7 +749,7 @@ def _child(out: Path) -> None:
         os._exit(3)
     except Exception as err:  # recorded, not raised: the other jobs go on
         write_status(out, state="aborted", reason=f"{type(err).__name__}: {err}", pid=0)
-        print(f"job failed: {type(err).__name__}: {err}", file=sys.stderr)
+        _say(f"job failed: {type(err).__name__}: {err}", sys.stderr)
         os._exit(1)
     write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s, pid=0)
     os._exit(0)
@@ -747,9 +783,40 @@ def _run_isolated(out: Path) -> int:
     return proc.exitcode if proc.exitcode is not None else -1
 
 
-def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunResult | None:
+_JOB: dict[str, bool] = {"tty": False}
+"""Whether the sweep of the job running in this process shows its line on a terminal."""
+
+
+def _say(text: str, stream: TextIO | None = None) -> None:
+    """Print a job's line (on standard output by default); when the sweep's progress line
+    is on the terminal it goes to, clear that line first (it is redrawn below).
+    """
+    stream = sys.stdout if stream is None else stream
+    clear = ""
+    if _JOB["tty"]:
+        with contextlib.suppress(AttributeError, ValueError, OSError):
+            clear = "\r\x1b[K" if stream.isatty() else ""
+    print(clear + text, file=stream, flush=True)
+
+
+def run_job(
+    cfg: DictConfig, out: Path, job: int, overrides: list[str], sweep_dir: Path | None = None
+) -> RunResult | None:
     """One job of a multirun: skip when its log is complete, intact and of this config;
     otherwise run it in a process of its own; never raise on failure; keep status.
+
+    The job's ``job_status.json`` also says when it started and ended (``started_at``,
+    ``ended_at``: Unix time, s), whether it was ``skipped`` and of which sweep it is
+    (``sweep_run``, from the sweep directory's :data:`~harness.sweep_progress.RUN_FILE`),
+    for the sweep's progress line (:mod:`harness.sweep_progress`); while that line is on
+    a terminal, the run's own bar with ``log.progress=auto`` is off.
+
+    Args:
+        cfg: The job's config.
+        out: The job's directory.
+        job: The job's number in the sweep.
+        overrides: The job's overrides.
+        sweep_dir: The sweep directory (default: the parent of ``out``).
 
     Returns:
         None always (the job's ``job_status.json`` and log hold the outcome).
@@ -758,53 +825,71 @@ def run_job(cfg: DictConfig, out: Path, job: int, overrides: list[str]) -> RunRe
     digest = config_hash(cfg)
     now_code = code_identity()
     ident = {"job": job, "overrides": overrides, "config_sha256": digest}
+    sweep = read_run(out.parent if sweep_dir is None else sweep_dir)
+    _JOB["tty"] = sweep.get("tty") is True
+    if sweep.get("tty") is True and OmegaConf.select(cfg, "log.progress") == "auto":
+        with read_write(cfg), open_dict(cfg):
+            OmegaConf.update(cfg, "log.progress", "off")  # the sweep's line is on the terminal
     with _claim(out):
-        log = out / LOG_FILE
-        check = verify_log(log)
-        same_config = check.config_hash == digest
-        changed = code_change(check.provenance, now_code) if check.provenance else ""
-        if check.intact and check.state == "completed" and same_config and not changed:
-            write_status(out, state="completed", reason="", rerun_reason="", **ident)
-            print(f"job {job}: already completed, skipped ({out})")
-            return None
-        if not check.intact:
-            why = check.problem
-        elif not same_config:
-            why = "the log holds another config"
-        elif changed:
-            why = changed
-        else:
-            why = f"the log's status is {check.state}"
+        started = {"sweep_run": sweep.get("id", ""), "started_at": time.time()}
+        write_status(out, **started, ended_at=None, skipped=False, **ident)
         try:
-            with quiet_hydra_utils():
-                _PENDING[:] = [build(cfg)]
-        except ConfigError as err:
-            print(config_line(err), file=sys.stderr)
-            write_status(out, state="invalid", reason=config_line(err), pid=0, **ident)
-            return None
-        if log.exists() or log.is_symlink():
-            if same_config and not changed and check.provenance and check.state != "completed":
-                log.unlink()  # a verified copy, unfinished: the rerun writes it whole
-            else:
-                moved = _set_aside(log)  # anything else is never overwritten
-                why += f" (kept as {moved.name})"
-        runs = _int(read_status(out).get("runs"), 0) + 1
-        write_status(out, state="running", runs=runs, reason="", rerun_reason=why, pid=0, **ident)
-        try:
-            code = _run_isolated(out)  # the child inherits the build
-        except OSError as err:  # no process could be forked: run here
-            print(f"job {job}: cannot fork ({err}); running in the worker", file=sys.stderr)
-            code = 0
-            try:
-                result = run(_PENDING.pop(), out)
-                write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
-            except Exception as err2:
-                write_status(out, state="aborted", reason=f"{type(err2).__name__}: {err2}")
-        if code < 0:
-            name = signal.Signals(-code).name
-            hint = " (the out-of-memory killer?)" if -code == signal.SIGKILL else ""
-            write_status(out, state="killed", reason=f"killed by {name}{hint}", pid=0)
-            print(f"job {job} was killed by {name}{hint}", file=sys.stderr)
-        elif read_status(out).get("state") == "running":
-            write_status(out, state="aborted", reason=f"exited with status {code}", pid=0)
+            _resume_or_run(cfg, out, ident, digest, now_code)
+        finally:
+            write_status(out, ended_at=time.time())
     return None
+
+
+def _resume_or_run(
+    cfg: DictConfig, out: Path, ident: dict[str, Any], digest: str, now_code: dict[str, str]
+) -> None:
+    """The body of :func:`run_job`, with the job's directory claimed."""
+    job = ident["job"]
+    log = out / LOG_FILE
+    check = verify_log(log)
+    same_config = check.config_hash == digest
+    changed = code_change(check.provenance, now_code) if check.provenance else ""
+    if check.intact and check.state == "completed" and same_config and not changed:
+        write_status(out, state="completed", reason="", rerun_reason="", skipped=True, **ident)
+        _say(f"job {job}: already completed, skipped ({out})")
+        return
+    if not check.intact:
+        why = check.problem
+    elif not same_config:
+        why = "the log holds another config"
+    elif changed:
+        why = changed
+    else:
+        why = f"the log's status is {check.state}"
+    try:
+        with quiet_hydra_utils():
+            _PENDING[:] = [build(cfg)]
+    except ConfigError as err:
+        _say(config_line(err), sys.stderr)
+        write_status(out, state="invalid", reason=config_line(err), pid=0, **ident)
+        return
+    if log.exists() or log.is_symlink():
+        if same_config and not changed and check.provenance and check.state != "completed":
+            log.unlink()  # a verified copy, unfinished: the rerun writes it whole
+        else:
+            moved = _set_aside(log)  # anything else is never overwritten
+            why += f" (kept as {moved.name})"
+    runs = _int(read_status(out).get("runs"), 0) + 1
+    write_status(out, state="running", runs=runs, reason="", rerun_reason=why, pid=0, **ident)
+    try:
+        code = _run_isolated(out)  # the child inherits the build
+    except OSError as err:  # no process could be forked: run here
+        _say(f"job {job}: cannot fork ({err}); running in the worker", sys.stderr)
+        code = 0
+        try:
+            result = run(_PENDING.pop(), out)
+            write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s)
+        except Exception as err2:
+            write_status(out, state="aborted", reason=f"{type(err2).__name__}: {err2}")
+    if code < 0:
+        name = signal.Signals(-code).name
+        hint = " (the out-of-memory killer?)" if -code == signal.SIGKILL else ""
+        write_status(out, state="killed", reason=f"killed by {name}{hint}", pid=0)
+        _say(f"job {job} was killed by {name}{hint}", sys.stderr)
+    elif read_status(out).get("state") == "running":
+        write_status(out, state="aborted", reason=f"exited with status {code}", pid=0)

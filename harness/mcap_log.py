@@ -20,8 +20,9 @@ Topics (a topic that does not apply to the plant or estimator is absent):
 * ``/swarm/poses`` (robots with a heading, ``plant=unicycles``):
   ``foxglove.PosesInFrame``, each robot's position ``(x, y, 0)`` (length) and heading
   ``theta`` (rad) as the rotation ``theta`` about z, at the positions' rate;
-* ``/metrics``: JSON (schema encoding ``jsonschema``), one message per step, the keys
-  of :data:`METRIC_KEYS` in that order (``null`` where not applicable).
+* ``/metrics``: JSON (schema encoding ``jsonschema``, :data:`METRICS_SCHEMA`), one
+  message per step, the keys of :data:`METRIC_KEYS` in that order (``null`` where not
+  applicable; the schema types every key as ``"number"``, see there).
 
 Grids follow ``foxglove.Grid``: ``column_count = nx`` cells along x, rows along y
 starting at the pose origin ``(x0, y0, 0)``, ``cell_size = (dx, dy)``, little-endian
@@ -117,17 +118,33 @@ observer gave is ``null``."""
 ALWAYS_NUMBERS = ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
 """Keys that are never null (the divergence guard's default)."""
 
+MISSING_VALUE = "null where not applicable"
+"""How the schema describes a key that may be missing (JSON ``null``)."""
+
 METRICS_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": "densityloop.Metrics",
-    "description": "Per-step metrics of a densityloop run; units in the README.",
+    "description": (
+        "Per-step metrics of a densityloop run; units in the README. Every key is written; "
+        "a key whose description says so is null where not applicable."
+    ),
     "type": "object",
     "properties": {
-        key: ({"type": "number"} if key in ALWAYS_NUMBERS else {"type": ["number", "null"]})
+        key: {"type": "number"}
+        if key in ALWAYS_NUMBERS
+        else {"type": "number", "description": MISSING_VALUE}
         for key in METRIC_KEYS
     },
     "required": list(METRIC_KEYS),
 }
+"""The ``/metrics`` JSON schema. Each property has the single type ``"number"``:
+Foxglove-protocol viewers (Foxglove Studio 1.x, Lichtblick) read a property's ``type``
+as one string and drop the whole channel for a type array such as
+``["number", "null"]``. A missing value is still JSON ``null`` (the keys other than
+:data:`ALWAYS_NUMBERS`, marked by their ``description``); the viewers parse the message
+without validating it, so a Plot panel leaves the step out and Raw Messages shows
+``null``. A strict JSON Schema validator flags those nulls: the contract is "a number, or
+null for a key that may be missing"."""
 
 FIELD_TOPICS = {
     "/fields/p_true": ("p",),

@@ -73,7 +73,7 @@ def test_ring_spectrum_components_and_messages():
     # two separated clusters: two components, lambda_2 = 0
     two = communication_graph(np.hstack([_ring(8, 0.05) - 0.3, _ring(8, 0.05) + 0.3]), radius=0.1)
     assert n_components(two) == 2 and algebraic_connectivity(two) == 0.0
-    counts = message_counts(adj, rounds=3, floats_per_message=900)
+    counts = message_counts(adj, rounds=3, floats_per_round=900)
     assert counts["messages"] == 6 and counts["floats"] == 5400 and counts["bytes"] == 43200
 
 
@@ -102,7 +102,7 @@ def test_compiled_consensus_step_matches_scipy_and_keeps_the_mean_at_the_kde(rng
         phi_old = robot_kernels(g, pos, H, gradient=True)
         pos = np.clip(pos + 0.03 * rng.normal(size=pos.shape), 0, 1)  # graph changes
         w, _ = consensus_weights(communication_graph(pos, radius=0.15), 0.7)
-        ref = dac.reference_step(z, robot_kernels(g, pos, H, gradient=True), phi_old, w)
+        ref, _ = dac.reference_step(z, robot_kernels(g, pos, H, gradient=True), phi_old, w)
         z = dac.step(pos, w).copy()
         np.testing.assert_allclose(z, ref, atol=1e-12 * abs(ref).max())
         p, grad = kde.exact(pos)

@@ -3,9 +3,11 @@
 The client speaks Foxglove's WebSocket protocol with the ``websockets`` package. The
 foxglove-sdk server (0.30) accepts the subprotocol ``foxglove.sdk.v1`` (the renamed
 ``foxglove.websocket.v1``: same JSON control messages and binary message frames
-``0x01 | u32 subscription id | u64 log time | payload``). Grids are decoded with a
-protobuf class built from the schema the server advertises and a strided read of
-the ``foxglove.Grid`` layout written here, not with the project's loader.
+``0x01 | u32 subscription id | u64 log time | payload``, time frames
+``0x02 | u64 time``); clients offering the old name reach it through the server's
+shim. Grids are decoded with a protobuf class built from the schema the server
+advertises and a strided read of the ``foxglove.Grid`` layout written here, not with the
+project's loader.
 """
 
 import asyncio
@@ -35,6 +37,7 @@ from harness.mcap_log import METRICS_SCHEMA, GridMsg, McapLogger, grid_message, 
 websockets = pytest.importorskip("websockets")
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+LEGACY = "foxglove.websocket.v1"
 WAIT_S = 10.0  # bound on every wait
 
 
@@ -44,10 +47,15 @@ class Client:
     monotonic receive time)``.
     """
 
-    def __init__(self, url: str, topics: set[str], read: bool = True) -> None:
-        self.url, self.topics, self.read = url, topics, read
+    def __init__(
+        self, url: str, topics: set[str], read: bool = True, offer: tuple[str, ...] = (SUBPROTOCOL,)
+    ) -> None:
+        self.url, self.topics, self.read, self.offer = url, topics, read, offer
         self.channels: dict[str, dict] = {}
         self.messages: list[tuple[str, int, bytes, float]] = []
+        self.times: list[tuple[int, int]] = []  # (server time, messages received before it)
+        self.server_info: dict = {}
+        self.subprotocol: str | None = None
         self.connected = threading.Event()
         self.subscribed: set[str] = set()
         self._stop = threading.Event()
@@ -72,12 +80,13 @@ class Client:
         try:
             async with websockets.connect(
                 self.url,
-                subprotocols=[SUBPROTOCOL],
+                subprotocols=list(self.offer),
                 proxy=None,
                 open_timeout=WAIT_S,
                 close_timeout=2,
             ) as ws:
-                assert ws.subprotocol == SUBPROTOCOL
+                self.subprotocol = ws.subprotocol
+                assert ws.subprotocol in self.offer
                 self.connected.set()
                 by_sub: dict[int, str] = {}
                 while not self._stop.is_set():
@@ -103,6 +112,8 @@ class Client:
                             await asyncio.sleep(0.05)
                             sub = {"id": sub_id, "channelId": channel_id}
                             await ws.send(json.dumps({"op": "subscribe", "subscriptions": [sub]}))
+                        if msg.get("op") == "serverInfo":
+                            self.server_info = msg
                         if msg.get("op") == "advertise":
                             subs = []
                             for ch in msg["channels"]:
@@ -120,6 +131,10 @@ class Client:
                         sub_id, log_time = struct.unpack_from("<IQ", frame, 1)
                         self.messages.append(
                             (by_sub[sub_id], log_time, bytes(frame[13:]), time.monotonic())
+                        )
+                    elif frame[0] == 0x02:
+                        self.times.append(
+                            (struct.unpack_from("<Q", frame, 1)[0], len(self.messages))
                         )
         except BaseException as err:  # reported to the test thread by check()
             self._error = err
@@ -200,6 +215,35 @@ def test_client_receives_and_decodes_a_grid():
     assert (decoded.column_count, decoded.cell_size.x) == (grid.nx, grid.dx)
     np.testing.assert_array_equal(decode_grid(decoded)["p"], values[0].astype(np.float32))
     assert json.loads(got["/metrics"][1]) == {"t": 0.25, "phi_l2": 1.5}
+
+
+@pytest.mark.parametrize("offer", [(LEGACY,), (SUBPROTOCOL,), (LEGACY, SUBPROTOCOL)])
+def test_either_subprotocol_name_connects_and_gets_the_simulated_clock(offer):
+    # Foxglove Studio 1.x offers only the old name; the server answers with the name the
+    # client offered, advertises the time capability and sends the simulated time before
+    # the messages of that time
+    with LiveServer(port=0) as server:
+        server.channel("/metrics", *metrics_schema())
+        with Client(server.url, {"/metrics"}, offer=offer) as client:
+            client.wait_for(lambda: server.subscribed("/metrics"), "the subscription")
+            for t in (0.0, 0.02, 0.04):
+                server.publish("/metrics", time_ns(t), json.dumps({"t": t}).encode())
+            client.wait_for(lambda: len(client.messages) == 3, "three messages")
+            client.check()
+    assert client.subprotocol == (SUBPROTOCOL if SUBPROTOCOL in offer else LEGACY)
+    assert "time" in client.server_info["capabilities"]
+    assert [m[1] for m in client.messages] == [0, 20_000_000, 40_000_000]
+    # the clock: each new time once, in order. foxglove-sdk sends it on its control
+    # queue and the messages on their data queue, drained in no fixed order: a burst of
+    # messages can arrive before or after the times sent between them
+    assert [t for t, _ in client.times] == [0, 20_000_000, 40_000_000]
+
+
+def test_a_client_offering_another_protocol_is_refused():
+    with LiveServer(port=0) as server:
+        with pytest.raises(websockets.exceptions.InvalidStatus):
+            with Client(server.url, set(), offer=("other.v1",)) as client:
+                client.check()
 
 
 def test_unsubscribed_topics_and_closed_server_are_silent():

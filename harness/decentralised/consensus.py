@@ -68,19 +68,21 @@ consensus", IEEE Control Systems 39(3), 2019). A second state ``w`` per robot (s
 shape as ``z``, ``w(0) = 0``) integrates the disagreement. With ``L_eps = eps L = I - W``
 and gains ``k_P``, ``k_I``, each step adds the input's change and runs ``m`` rounds of
 
-    v       = z + phi(t + 1) - phi(t)            (first round of a step; v = z after)
+    v       = z + (phi(t + 1) - phi(t)) / m      (the input's change, split over the rounds)
     z'      = v - k_P L_eps v - k_I L_eps w                                          (PI)
     w'      = w + k_I L_eps z'
 
 ``1^T L_eps = 0``, so ``1^T z`` changes only by the input's change: the invariant above
-holds as for the first-order form (the PI form with ``k_I = 0``, ``k_P = 1`` is it).
+holds as for the first-order form (with one round per step, the PI form with ``k_I = 0``,
+``k_P = 1`` is it).
 *Ramps.* For a constant input change ``phi(t + 1) - phi(t) = c`` (robots moving at
 constant velocity, to first order) the first-order form settles at the lag
 ``e_* = (I - W^m)^+ W^m Pi c``, which the smallest eigenvalues of ``L`` amplify as
-``1 / (eps lambda_2)``. The PI form's fixed point needs ``w' = w``, i.e. ``L_eps z' =
-0``: the output agrees (``e = 0``) and ``k_I L_eps w = (I - k_P L_eps) Pi c`` absorbs the
-ramp. So the PI form tracks a ramp with zero steady error (tested against the
-first-order lag formula). *Stability.* On the eigenvector of ``L_eps`` with eigenvalue
+``1 / (m eps lambda_2)``. In the PI form every round of a step is then the same affine
+map (each adds ``c / m``), and its fixed point needs ``w' = w``, i.e. ``L_eps z' = 0``:
+the robots agree after every round (``e = 0``), and ``k_I L_eps w = (I - k_P L_eps) Pi c
+/ m`` absorbs the ramp. So the PI form tracks a ramp with zero steady error (tested
+against the first-order lag formula). *Stability.* On the eigenvector of ``L_eps`` with eigenvalue
 ``mu`` in ``(0, 2)`` one round maps ``(e, w)`` by ``[[1 - a, -b], [b (1 - a), 1 - b^2]]``
 with ``a = k_P mu``, ``b = k_I mu``: determinant ``1 - a``, trace ``2 - a - b^2``. Both
 eigenvalues lie inside the unit circle (Jury) iff ``|1 - a| < 1`` and ``b^2 < 4 - 2 a``,
@@ -411,15 +413,18 @@ class DynamicAverageConsensus:
         """Bytes of the largest message: ``8 C`` (first order) or ``16 C`` (PI)."""
         return 8 * self.columns * (2 if self.form == "pi" else 1)
 
-    def _increment(self, factors: tuple[np.ndarray, ...], old: tuple[np.ndarray, ...] | None):
-        assert self.z is not None
+    def _increment(
+        self, factors: tuple[np.ndarray, ...], old: tuple[np.ndarray, ...] | None
+    ) -> np.ndarray:
+        """``phi(t + 1) - phi(t)`` (``phi(0)`` when ``old`` is None), ``(N, C)``."""
         kx, dkx, ky, dky = factors
         if self.band is not None:  # the coefficients' change, C_y ky_i (C_x kx_i)^T
             coef = self.band.kernels(kx, ky)
-            self.z += coef if self._coef is None or old is None else coef - self._coef
+            delta = coef if self._coef is None or old is None else coef - self._coef
             self._coef = coef
-            return
+            return delta
         m = self.grid.size
+        delta = np.zeros((kx.shape[0], self.columns))
         parts = [(ky, kx)]
         if self.gradient:
             parts += [(ky, dkx), (dky, kx)]
@@ -429,8 +434,9 @@ class DynamicAverageConsensus:
             olds = [(oky, okx)] + ([(oky, odkx), (odky, okx)] if self.gradient else [])
         sign = -1.0 if old is not None else 0.0
         for f, ((a, b), (oa, ob)) in enumerate(zip(parts, olds, strict=True)):
-            # a column block of z (strided rows): the kernel takes any layout
-            _add_kernel_increment(self.z[:, f * m : (f + 1) * m], a, b, oa, ob, sign)
+            # a column block (strided rows): the kernel takes any layout
+            _add_kernel_increment(delta[:, f * m : (f + 1) * m], a, b, oa, ob, sign)
+        return delta
 
     def _mixer(self, w: sp.csr_matrix, positions: np.ndarray):
         """``x -> W x`` into a new array: by neighbour sums along a space-filling curve
@@ -454,26 +460,33 @@ class DynamicAverageConsensus:
 
         return mix
 
-    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray) -> None:
-        """``rounds`` rounds of eq. ``DAC`` (``z <- W z``) or eq. ``PI``."""
+    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray, delta: np.ndarray) -> None:
+        """Add the input's change ``delta`` and run ``rounds`` rounds: eq. ``DAC`` (``z <-
+        W^m (z + delta)``), or eq. ``PI`` with ``delta / m`` added before each round (so
+        that every round of a step is the same map under a ramp, and its fixed point
+        agrees after every round; the whole change is in ``z`` by the step's end).
+        """
         assert self.z is not None and self._buf is not None
         mix = self._mixer(w, positions)
-        for _ in range(rounds):
-            if self.form == "first_order":
+        if self.form == "first_order":
+            self.z += delta
+            for _ in range(rounds):
                 mix(self.z, self._buf)
                 self.z, self._buf = self._buf, self.z
-                continue
-            assert self.w is not None
-            c = self.columns
-            both = mix(np.concatenate([self.z, self.w], axis=1))  # exchange (v, w)
-            v, w_ = self.z, self.w
+            return
+        assert self.w is not None
+        if rounds == 0:
+            self.z += delta
+            return
+        c = self.columns
+        for _ in range(rounds):
+            v = self.z + delta / rounds
+            both = mix(np.concatenate([v, self.w], axis=1))  # exchange (v, w)
             # z' = v - k_P L_eps v - k_I L_eps w,  with L_eps x = x - W x
-            z_new = v - self.k_p * (v - both[:, :c]) - self.k_i * (w_ - both[:, c:])
+            z_new = v - self.k_p * (v - both[:, :c]) - self.k_i * (self.w - both[:, c:])
             # w' = w + k_I L_eps z'  (exchange z')
-            self.w = w_ + self.k_i * (z_new - mix(z_new))
+            self.w = self.w + self.k_i * (z_new - mix(z_new))
             self.z = z_new
-        if self.form == "pi":
-            self._buf = np.empty_like(self.z)
 
     def kde(self) -> tuple[np.ndarray, np.ndarray]:
         """The exact KDE of the current positions, ``(p, grad p)`` of shapes ``(ny, nx)``
@@ -502,17 +515,16 @@ class DynamicAverageConsensus:
         self._buf = np.empty_like(self.z)
         self._coef = None
         self._factors = kernel_factors(self.grid, positions, self.bandwidth)
-        self._increment(self._factors, None)
-        self._mix(w, self.initial_rounds, positions)
+        self._mix(w, self.initial_rounds, positions, self._increment(self._factors, None))
         return self.observation()
 
     def step(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
         """Add the kernels' change, then ``m`` rounds; returns the observations."""
         assert self.z is not None and self._factors is not None, "call initialize first"
         factors = kernel_factors(self.grid, positions, self.bandwidth)
-        self._increment(factors, self._factors)
+        delta = self._increment(factors, self._factors)
         self._factors = factors
-        self._mix(w, self.rounds, positions)
+        self._mix(w, self.rounds, positions, delta)
         return self.observation()
 
     def reference_step(
@@ -524,21 +536,23 @@ class DynamicAverageConsensus:
         integral: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """Plain statement of :meth:`step` (scipy): ``W^m (z + phi_new - phi_old)``, or
-        ``m`` rounds of eq. ``PI`` from ``(z + phi_new - phi_old, integral)``; returns
-        ``(z, w)`` (``w`` None for the first-order form).
+        ``m`` rounds of eq. ``PI`` from ``(z, integral)`` with ``(phi_new - phi_old) / m``
+        added before each; returns ``(z, w)`` (``w`` None for the first-order form).
         """
-        out = z + phi_new - phi_old
+        delta = phi_new - phi_old
         if self.form == "first_order":
+            out = z + delta
             for _ in range(self.rounds):
                 out = w @ out
             return out, None
-        acc = np.zeros_like(out) if integral is None else integral
+        out, acc = z, (np.zeros_like(z) if integral is None else integral)
 
         def lap(x: np.ndarray) -> np.ndarray:
             return x - w @ x
 
         for _ in range(self.rounds):
-            out_new = out - self.k_p * lap(out) - self.k_i * lap(acc)
+            v = out + delta / self.rounds
+            out_new = v - self.k_p * lap(v) - self.k_i * lap(acc)
             acc = acc + self.k_i * lap(out_new)
             out = out_new
         return out, acc
