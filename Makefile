@@ -6,11 +6,11 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-slow test-slurm lint format bench reproduce sweeps clean
+.PHONY: help install test test-slow test-slurm lint format docs bench reproduce sweeps clean
 
 help: ## List the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-12s %s\n", $$1, $$2}'
-	@echo "  sweep-NAME   One study and its figures; NAME in: $(STUDIES) $(EXTRA_STUDIES)"
+	@echo "  sweep-NAME   One study, its figures and its page; NAME in: $(STUDIES) $(EXTRA_STUDIES)"
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,10 +20,11 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP) ## Create .venv and install the project with its dev tools
 
-test: $(STAMP) ## Static checks (ruff, mypy) and the test suite (excludes tests marked slow)
+test: $(STAMP) ## Static checks (ruff, mypy), the documentation build and the tests (not the slow ones)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m mypy
+	$(MAKE) --no-print-directory docs
 	scripts/viewer_deps.sh  # chromium and viewer/node_modules for tests/test_viewer.py; never fails
 	$(PY) -m pytest
 
@@ -42,12 +43,29 @@ format: $(STAMP) ## Format the code with ruff
 	$(PY) -m ruff format .
 	$(PY) -m ruff check --fix .
 
-bench: $(STAMP) ## Speed benchmarks, each figure next to its target (about 6 min)
-	$(PY) -m benchmarks.suite
-	$(PY) -m benchmarks.numerics
-	$(PY) -m benchmarks.distributed --app
-	$(PY) -m benchmarks.laws
-	$(PY) -m benchmarks.robots
+DOCS_DIR := build/docs/html
+
+# a fresh environment (-E) every time: Sphinx re-emits a page's warnings only when it
+# re-reads the page, and autodoc's pages change with the code, which it does not track
+docs: $(STAMP) ## Build the documentation site into build/docs/html (warnings are errors)
+	$(PY) -m sphinx -b html -E -n -W --keep-going -q docs $(DOCS_DIR)
+	@echo "docs: $(DOCS_DIR)/index.html"
+
+BENCHMARKS := "benchmarks.suite" "benchmarks.numerics" "benchmarks.distributed --app" \
+	"benchmarks.laws" "benchmarks.robots"
+BENCH_FIGURES := build/bench/figures.jsonl
+
+# every benchmark runs and the page is written even when a target is missed; the exit
+# status says whether every benchmark exited 0
+bench: $(STAMP) ## Speed benchmarks, each figure against its target; writes docs/performance.md (about 6 min)
+	@mkdir -p $(dir $(BENCH_FIGURES)) && rm -f $(BENCH_FIGURES)
+	@status=0; \
+	for b in $(BENCHMARKS); do \
+		echo "== python -m $$b"; \
+		DENSITYLOOP_BENCH_FIGURES=$(BENCH_FIGURES) $(PY) -m $$b || status=1; \
+	done; \
+	$(PY) -m benchmarks.report $(BENCH_FIGURES) --out docs/performance.md || status=1; \
+	exit $$status
 
 RUN_DIR := outputs/reproduce
 
@@ -71,17 +89,19 @@ STUDIES := laws_n laws_iss heat_floor laws_noise robots link conv_grid conv_sigm
 # debiased loop up to N = 16384, about 12 min)
 EXTRA_STUDIES := distributed_r conv_grid_agents iss_gain debias_n
 
-sweeps: $(STAMP) ## Run the study presets (about 30 min on 2 cores) and write figures/sweeps/
+sweeps: $(STAMP) ## Run the study presets (about 30 min on 2 cores); figures/sweeps/ and docs/studies/
 	@for s in $(STUDIES); do \
 		echo "== $$s"; \
 		$(PY) -m experiments.closed_loop +experiment=$$s hydra.sweep.dir=multirun/$$s || exit 1; \
 		$(PY) -m analysis.sweep multirun/$$s --out figures/sweeps/$$s || exit 1; \
+		$(PY) -m analysis.study_pages $$s || exit 1; \
 	done
 	@echo "figures:"; ls -1 figures/sweeps/*/*.png
 
 $(addprefix sweep-,$(STUDIES) $(EXTRA_STUDIES)): sweep-%: $(STAMP)
 	$(PY) -m experiments.closed_loop +experiment=$* hydra.sweep.dir=multirun/$*
 	$(PY) -m analysis.sweep multirun/$* --out figures/sweeps/$*
+	$(PY) -m analysis.study_pages $*
 
-clean: ## Remove outputs and figures (keeps .venv)
-	rm -rf outputs multirun figures .pytest_cache .ruff_cache
+clean: ## Remove outputs, figures and the built documentation (keeps .venv)
+	rm -rf outputs multirun figures build/docs build/bench .pytest_cache .ruff_cache

@@ -40,7 +40,7 @@ from analysis.output import atomic_path
 if TYPE_CHECKING:
     import xarray as xr
 
-# units of the field topics (log contract, harness/mcap_log.py) and of the metrics (README)
+# units of the field topics (log contract, harness/mcap_log.py) and of the metrics (docs/units.md)
 FIELD_UNITS = {
     "/fields/p_target": "1/length^2",
     "/fields/p_true": "1/length^2",
@@ -261,7 +261,7 @@ def metrics_dataset(metrics: dict[str, np.ndarray]) -> xr.Dataset:
     """The ``/metrics`` arrays as an ``xarray.Dataset`` on dim ``t`` (s).
 
     One variable per key other than ``t``, ``NaN`` where the log has ``null``, with
-    its ``units`` attribute (README, "Numbers the code prints").
+    its ``units`` attribute (``docs/units.md``).
     """
     import xarray as xr
 

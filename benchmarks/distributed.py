@@ -30,6 +30,7 @@ import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.report import record
 from harness.agents import Swarm
 from harness.control import PaperControl, paper_law
 from harness.decentralised import RobotEstimators, algebraic_connectivity
@@ -200,22 +201,9 @@ def bench_app(quick: bool) -> bool:
         if n_robots == 4096:
             fastest = min(fastest, ms)
         name = f"N = {n_robots}, r = {radius}, gradient = {gradient}, {design}"
-        if target is None:
-            print(f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)")
-            continue
-        met = ms <= target
-        ok &= met
-        verdict = "OK" if met else "MISSED"
-        print(
-            f"  {name:<44s} {ms:10.1f} ms per step ({1e3 / ms:6.1f} steps/s)   "
-            f"target >= {1e3 / target:.0f} steps/s   {verdict}"
-        )
-    met = fastest <= TARGET_MS
-    ok &= met
-    print(
-        f"  N = 4096, r = 0.1, fastest design: {fastest:.1f} ms per step ({1e3 / fastest:.1f} "
-        f"steps/s)   target >= {1e3 / TARGET_MS:.0f} steps/s   {'OK' if met else 'MISSED'}"
-    )
+        ok &= record(name, 1e3 / ms, "steps/s", None if target is None else 1e3 / target, ">=")
+    name = "N = 4096, r = 0.1, fastest design"
+    ok &= record(name, 1e3 / fastest, "steps/s", 1e3 / TARGET_MS, ">=")
     return ok
 
 
@@ -245,11 +233,9 @@ def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> No
         loop.step()
     ms = 1e3 * (time.perf_counter() - t0) / steps
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
-    verdict = "OK" if peak <= estimate else "MISSED"
-    print(
-        f"  N = {n_robots}, r = {radius}, {design}: peak memory {peak / 2**20:.0f} MiB "
-        f"against the estimate {estimate / 2**20:.0f} MiB   {verdict} ({ms:.0f} ms per step)"
-    )
+    name = f"N = {n_robots}, r = {radius}, {design}"
+    record(f"{name}: peak memory (target: the estimate)", peak / 2**20, "MiB", estimate / 2**20)
+    record(f"{name}: step time, the memory case", ms, "ms")
 
 
 def bench_memory() -> bool:

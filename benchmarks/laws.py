@@ -17,6 +17,8 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.report import record
+
 LAWS = ("paper", "heat", "langevin", "mmd", "svgd", "psg", "psg_feedback", "ot")
 """Every law (``control=<law>``)."""
 
@@ -74,14 +76,9 @@ def main(argv: list[str] | None = None) -> bool:
         for n_robots, target in TARGETS.items():
             for law in LAWS if n_robots == 1024 else LARGE:
                 rate, share = loop_rate(law, n_robots, args.seconds)
-                met = rate >= target
-                ok &= met
                 name = f"N = {n_robots:>6,d}, control={law}"
-                verdict = "OK" if met else "MISSED"
-                print(
-                    f"  {name:<40s} {rate:8.1f} /s   law {100 * share:4.0f} % of a step   "
-                    f"target >= {target:g} /s   {verdict}"
-                )
+                ok &= record(name, rate, "steps/s", target, ">=")
+                record(f"{name}: the law's share of a step", 100 * share, "%")
     print("all law targets met" if ok else "SOME LAW TARGETS MISSED")
     return ok
 

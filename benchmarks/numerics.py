@@ -34,6 +34,7 @@ from functools import partial
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.report import record
 from benchmarks.suite import closed_loop_rate, median_ms
 from harness.agents import Swarm
 from harness.control import paper_law
@@ -45,15 +46,9 @@ from harness.velocity import VelocityField
 
 
 def line(name: str, value: float, unit: str, target: float | None, lower_is_better: bool) -> bool:
-    """Print one figure against its target; return whether it is met."""
-    if target is None:
-        print(f"  {name:<50s} {value:10.3f} {unit}")
-        return True
-    ok = value <= target if lower_is_better else value >= target
-    rel = "<=" if lower_is_better else ">="
-    verdict = "OK" if ok else "MISSED"
-    print(f"  {name:<50s} {value:10.3f} {unit}   target {rel} {target:g} {unit}   {verdict}")
-    return ok
+    """Report one figure against its target (:func:`benchmarks.report.record`); whether
+    it is met."""
+    return record(name, value, unit, target, "<=" if lower_is_better else ">=")
 
 
 def mid_run(g: Grid) -> tuple[np.ndarray, VelocityField]:

@@ -25,6 +25,8 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.report import record
+
 PLANTS = ("agents", "unicycles", "double_integrators")
 """The plants compared (``plant=<option>``)."""
 
@@ -105,8 +107,9 @@ def robot_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
 
 
 def plant_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
-    """Median over ``repeats`` blocks of the mean plant step (ms, :meth:`advance`: the
-    link, the robots, the limit ``p_inf``) under the start's command, held fixed."""
+    """Median over ``repeats`` blocks of the mean plant step (ms,
+    :meth:`harness.plants.Agents.advance`: the link, the robots, the limit ``p_inf``) under
+    the start's command, held fixed."""
     parts, command, rng = _started(plant, n_robots)
     a = parts.model.matrix(command.field)
 
@@ -126,33 +129,26 @@ def main(argv: list[str] | None = None) -> int:
         ok = True
         print("robots' step, N = 1024 (command through the link, move, draws):")
         base = robot_step_ms("agents", 1024, 20 * args.steps, args.repeats)
-        print(f"  agents             {base * 1e3:7.1f} us")
+        record("N = 1024: agents, robots' step", base * 1e3, "us")
         for plant in PLANTS[1:]:
             ms = robot_step_ms(plant, 1024, 20 * args.steps, args.repeats)
-            ratio = ms / base
-            good = ratio <= ROBOT_RATIO_TARGET
-            ok &= good if plant == "unicycles" else True
-            target = f"(target <= {ROBOT_RATIO_TARGET}) {'ok' if good else 'MISSED'}"
-            print(
-                f"  {plant:<18} {ms * 1e3:7.1f} us  ratio {ratio:.2f} "
-                f"{target if plant == 'unicycles' else ''}"
-            )
+            record(f"N = 1024: {plant}, robots' step", ms * 1e3, "us")
+            target = ROBOT_RATIO_TARGET if plant == "unicycles" else None
+            ok &= record(f"N = 1024: {plant} / agents, robots' step", ms / base, "x", target)
         print("closed-loop step, N = 1024, paper's law and estimator, 30 x 30 grid:")
         base = loop_step_ms("agents", 1024, args.steps, args.repeats)
-        print(f"  agents             {base:7.3f} ms")
+        record("N = 1024: agents, closed-loop step", base, "ms")
         for plant in PLANTS[1:]:
             ms = loop_step_ms(plant, 1024, args.steps, args.repeats)
-            print(f"  {plant:<18} {ms:7.3f} ms  ratio {ms / base:.2f}")
-        print(f"N = {args.large:.0e}: robots' step, and the plant step (with the limit p_inf):")
+            record(f"N = 1024: {plant}, closed-loop step", ms, "ms")
+            record(f"N = 1024: {plant} / agents, closed-loop step", ms / base, "x")
+        print(f"N = {args.large:,d}: robots' step, and the plant step (with the limit p_inf):")
         for plant in ("agents", "unicycles"):
             ms = robot_step_ms(plant, args.large, 10, args.repeats)
             whole = plant_step_ms(plant, args.large, 10, args.repeats)
-            line = f"  {plant:<18} {ms:7.2f} ms  (plant step {whole:.2f} ms)"
-            if plant == "unicycles":
-                good = ms <= LARGE_STEP_TARGET_MS
-                ok &= good
-                line += f"  (target <= {LARGE_STEP_TARGET_MS:g} ms) {'ok' if good else 'MISSED'}"
-            print(line)
+            target = LARGE_STEP_TARGET_MS if plant == "unicycles" else None
+            ok &= record(f"N = {args.large:,d}: {plant}, robots' step", ms, "ms", target)
+            record(f"N = {args.large:,d}: {plant}, plant step", whole, "ms")
     return 0 if ok else 1
 
 

@@ -15,6 +15,7 @@ from pathlib import Path as Path_
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
+from benchmarks.report import record
 from harness.agents import Swarm
 from harness.control import paper_law
 from harness.densities import DEFAULT_TARGET, Box, Target
@@ -36,14 +37,8 @@ def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
 
 
 def report(name: str, value_ms: float, target_ms: float | None) -> bool:
-    """Print one line; return whether the target is met."""
-    if target_ms is None:
-        print(f"  {name:<52s} {value_ms:9.3f} ms")
-        return True
-    ok = value_ms <= target_ms
-    verdict = "OK" if ok else "MISSED"
-    print(f"  {name:<52s} {value_ms:9.3f} ms   target <= {target_ms:g} ms   {verdict}")
-    return ok
+    """Report one time in ms (:func:`benchmarks.report.record`); whether its target is met."""
+    return record(name, value_ms, "ms", target_ms, "<=")
 
 
 def bench_kde_agents() -> bool:
@@ -140,17 +135,8 @@ def bench_filters() -> bool:
     ]
     ok = True
     for name, value, target in rows:
-        if target is None:
-            print(f"  {name:<52s} {value:9.2f} /s")
-        else:
-            met = value >= target
-            ok &= met
-            verdict = "OK" if met else "MISSED"
-            print(f"  {name:<52s} {value:9.1f} /s   target >= {target:g} /s   {verdict}")
-    met = ratio >= 100
-    name = "speed-up of fast over filterpy engine, n = 30"
-    verdict = "OK" if met else "MISSED"
-    print(f"  {name:<52s} {ratio:9.0f} x    target >= 100 x   {verdict}")
+        ok &= record(name, value, "steps/s", target, ">=")
+    met = record("speed-up of fast over filterpy engine, n = 30", ratio, "x", 100.0, ">=")
     return ok and met
 
 
@@ -181,12 +167,9 @@ def bench_sweeps() -> bool:
             [*base, "seed=1,2", f"hydra.sweep.dir={tmp}/two"], check=True, capture_output=True
         )
         two = time.perf_counter() - t0
-    ratio = two / one
-    met = ratio <= 1.15
-    print(f"  {'one-job sweep (process wall time)':<52s} {one:9.2f} s")
-    print(f"  {'two jobs on two cores (joblib launcher)':<52s} {two:9.2f} s")
-    verdict = "OK" if met else "MISSED"
-    print(f"  {'ratio two jobs / one job':<52s} {ratio:9.2f}      target <= 1.15    {verdict}")
+    record("one-job sweep (process wall time)", one, "s")
+    record("two jobs on two cores (joblib launcher)", two, "s")
+    met = record("ratio two jobs / one job", two / one, "x", 1.15, "<=")
     # logging share of a run's wall time, default rates
     from harness.api import compose
     from harness.run import run
@@ -194,13 +177,8 @@ def bench_sweeps() -> bool:
     cfg = compose(["sim.t_final=20", "log.progress=off"])
     with tempfile.TemporaryDirectory() as tmp:
         result = run(cfg, Path_(tmp))
-    share = result.log_s / result.wall_s
-    met_log = share < 0.10
-    verdict = "OK" if met_log else "MISSED"
-    print(
-        f"  {'logging share of run wall time (default rates)':<52s} {100 * share:9.1f} %    "
-        f"target < 10 %   {verdict}"
-    )
+    share = 100 * result.log_s / result.wall_s
+    met_log = record("logging share of run wall time (default rates)", share, "%", 10.0, "<=")
     return met and met_log
 
 

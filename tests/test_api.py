@@ -23,6 +23,7 @@ from harness.checks import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "explore.py"
+README = ROOT / "README.md"
 
 
 def cli(*args: str, cwd: Path, python: str = sys.executable, env=None, timeout=300):
@@ -140,6 +141,32 @@ def test_the_example_runs_from_another_directory(tmp_path, monkeypatch):
         plt.close("all")
     check_example_outputs(figure, out["final"], out["curves"])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["figure.png"]
+
+
+def readme_example() -> str:
+    """The Python block of the README's section "From Python"."""
+    text = README.read_text()
+    section = text[text.index("## From Python") :]
+    match = re.search(r"```python\n(.*?)```", section, re.DOTALL)
+    assert match, "no Python block under 'From Python' in README.md"
+    return match[1]
+
+
+def test_the_readme_example_runs_from_another_directory(tmp_path, monkeypatch, capsys):
+    code = readme_example()
+    assert len([line for line in code.splitlines() if line.strip()]) <= 10
+    here, scratch = tmp_path / "here", tmp_path / "tmp"
+    here.mkdir()
+    scratch.mkdir()
+    monkeypatch.chdir(here)
+    monkeypatch.setattr("tempfile.tempdir", str(scratch))
+    exec(compile(code, str(README), "exec"), {"__name__": "__main__"})
+    out = capsys.readouterr().out
+    errors = [float(v) for v in re.findall(r"\|\|p_hat - p_\*\|\| = (\S+) 1/length", out)]
+    assert len(errors) >= 3 and 0 < errors[-1] < errors[0], out
+    assert re.search(r"^completed swarm_l2 = \d", out, re.MULTILINE), out
+    assert list(here.iterdir()) == []  # the run's log went where the example put it
+    assert [p.name for p in scratch.glob("*/run.mcap")] == ["run.mcap"]
 
 
 @pytest.mark.slow

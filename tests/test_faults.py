@@ -1,4 +1,4 @@
-"""The fault classes of the reliability contract (README), each with a test that fails
+"""The fault classes of the reliability contract (docs/reliability.md), each with a test that fails
 when its promise breaks.
 
 1 resume by content, 2 sweeps that survive their jobs (the SIGKILL fault injection is in

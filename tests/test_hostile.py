@@ -1,5 +1,5 @@
 """The failures a hostile tester found, by class, each with a test that fails when its
-promise breaks (README, "What happens on bad input ..."): two writers of one log,
+promise breaks (docs/reliability.md): two writers of one log,
 resume after a code change, the machine's real memory limits, a full disk in a sweep,
 one line for every error, the live view's shutdown and bind failures, analysis of
 foreign content, and values that would be rounded or dropped without a word.

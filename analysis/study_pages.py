@@ -1,0 +1,540 @@
+"""Render each study's documentation page from its aggregated sweep.
+
+    python -m analysis.study_pages [STUDY ...] [--figures DIR] [--docs DIR]
+
+For every study (default: every ``docs/studies/<study>.in.md`` template and every
+study with a ``sweep_aggregated.csv`` under ``--figures``), this
+
+1. copies ``<figures>/<study>/sweep_aggregated.csv`` (written by ``python -m
+   analysis.sweep multirun/<study> --out <figures>/<study>``) to
+   ``docs/studies/data/<study>.csv`` and the study's figure
+   (``<figures>/<study>/<figure>.png``, the figure its preset declares) to
+   ``docs/sweeps/<study>.png``, when they exist; otherwise the copies already in
+   ``docs/`` are used, so a page renders without its sweep;
+2. renders ``docs/studies/<study>.md`` from the template ``docs/studies/<study>.in.md``
+   (hand-written prose) with every number taken from the CSV.
+
+``make sweeps`` and ``make sweep-<study>`` run it after each study.
+
+Template. An optional YAML front matter (between ``---`` lines) declares the table::
+
+    ---
+    table:
+      where: {agents.n: 1024}            # keep the rows that match (optional)
+      sort: [law, agents.n]               # row order (optional)
+      columns:
+        - law                             # a key, printed as is
+        - {key: agents.n, label: N}
+        - {stat: swarm_ratio, label: swarm_l2 / floor, ci: true, fmt: .3g, nan: never}
+    ---
+
+and the body holds placeholders, each replaced by what the CSV says:
+
+* ``{{table}}``: the table above (a statistic as its mean over the seeds, with its
+  95 % interval in brackets when ``ci`` is set and there are several seeds);
+  ``{{table NAME}}`` the table ``NAME`` of a front-matter block ``tables:``; a table
+  with ``pivot: {rows: KEY, columns: KEY, stat: STAT}`` lays one statistic out with one
+  key down and another across;
+* ``{{figure}}``: the study's figure; ``{{commands}}``: the commands that regenerate the
+  page; ``{{csv}}``: a link to the data;
+* ``{{STAT @ key=value, key=value : fmt}}``: the mean of statistic ``STAT`` (column
+  ``STAT_mean``, or the column ``STAT`` itself for a key) at the one point whose keys
+  match (``key=a|b`` allows either value; ``study=NAME`` reads study ``NAME``'s data);
+  ``{{ci STAT @ ...}}`` the same with its interval; ``{{min STAT @ ...}}`` and
+  ``{{max STAT @ ...}}`` the least and largest mean over the matching points;
+  ``{{gain Y / X @ ...}}`` the least-squares slope through the origin of the means of
+  ``Y`` against those of ``X`` over the matching points with ``X > 0`` (an ISS gain,
+  as :mod:`analysis.laws` fits it; at least two points).
+
+In filters and in the table, ``law`` and ``<group>._target_`` take the option names of
+``conf/control`` and ``conf/<group>`` (``law=paper`` for ``PaperControl``). A placeholder
+that matches no point, or several where one is meant, stops the rendering with one line
+naming the template and the placeholder (exit status 2): a page never shows a number
+that is not in its data. A study without a template gets a page of its primary keys,
+its main statistics and its figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import re
+import shutil
+import sys
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from analysis.output import atomic_path, write_text
+
+ROOT = Path(__file__).resolve().parents[1]
+"""The repository's root (``conf/`` and ``docs/`` are found from here)."""
+
+DEFAULT_STATS = ("phat_tail_mean", "swarm_tail_mean", "swarm_ratio", "rate_fit", "rate_theory")
+"""The statistics of a page without a template (those the CSV has)."""
+
+
+GAIN_MIN_X = 1e-12
+"""``X`` at or below this counts as no error in a gain (as in :mod:`analysis.laws`)."""
+
+
+class PageError(ValueError):
+    """A template that cannot be rendered from its data; the message is one line."""
+
+
+@dataclass(frozen=True)
+class Study:
+    """Where a study's inputs and outputs are.
+
+    Attributes:
+        name: The study (``conf/experiment/<name>.yaml``).
+        figures: The directory ``analysis.sweep`` wrote the study's outputs to.
+        docs: The documentation directory.
+    """
+
+    name: str
+    figures: Path
+    docs: Path
+
+    @property
+    def template(self) -> Path:
+        """``docs/studies/<name>.in.md``."""
+        return self.docs / "studies" / f"{self.name}.in.md"
+
+    @property
+    def page(self) -> Path:
+        """``docs/studies/<name>.md``."""
+        return self.docs / "studies" / f"{self.name}.md"
+
+    @property
+    def data(self) -> Path:
+        """``docs/studies/data/<name>.csv``, the copy of the aggregated CSV."""
+        return self.docs / "studies" / "data" / f"{self.name}.csv"
+
+    @property
+    def image(self) -> Path:
+        """``docs/sweeps/<name>.png``, the copy of the figure."""
+        return self.docs / "sweeps" / f"{self.name}.png"
+
+
+def declared_figure(name: str, conf: Path = ROOT / "conf") -> str:
+    """The figure study ``name`` declares (``analysis.figure`` of its preset; the
+    generic ``convergence`` without one).
+    """
+    path = conf / "experiment" / f"{name}.yaml"
+    if not path.exists():
+        return "convergence"
+    preset = yaml.safe_load(path.read_text()) or {}
+    return str((preset.get("analysis") or {}).get("figure", "convergence"))
+
+
+def declared_primary(name: str, conf: Path = ROOT / "conf") -> list[str]:
+    """The keys study ``name`` declares as its points (``analysis.primary``)."""
+    path = conf / "experiment" / f"{name}.yaml"
+    if not path.exists():
+        return []
+    preset = yaml.safe_load(path.read_text()) or {}
+    return [str(k) for k in (preset.get("analysis") or {}).get("primary", [])]
+
+
+def option_names(conf: Path = ROOT / "conf") -> dict[str, dict[str, str]]:
+    """Per config group, class name (and full ``_target_``) -> option name: how a page
+    names a law or a plant (``law`` is the ``control`` group).
+    """
+    names: dict[str, dict[str, str]] = {}
+    for group in sorted(p for p in conf.iterdir() if p.is_dir()):
+        for option in sorted(group.glob("*.yaml")):
+            node = yaml.safe_load(option.read_text())
+            target = node.get("_target_") if isinstance(node, dict) else None
+            if isinstance(target, str):
+                table = names.setdefault(group.name, {})
+                table.setdefault(target, option.stem)
+                table.setdefault(target.rsplit(".", 1)[-1], option.stem)
+    names["law"] = names.get("control", {})
+    return names
+
+
+def copy_inputs(study: Study) -> list[Path]:
+    """Copy the study's aggregated CSV and figure into ``docs`` when the sweep's
+    outputs exist; the paths written.
+    """
+    written = []
+    source = study.figures / study.name / "sweep_aggregated.csv"
+    if source.exists():
+        study.data.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(study.data) as tmp:
+            shutil.copyfile(source, tmp)
+        written.append(study.data)
+    figure = study.figures / study.name / f"{declared_figure(study.name)}.png"
+    if figure.exists():
+        study.image.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(study.image) as tmp:
+            shutil.copyfile(figure, tmp)
+        written.append(study.image)
+    return written
+
+
+def read_points(path: Path) -> list[dict[str, str]]:
+    """The rows of an aggregated CSV (empty when there is none)."""
+    if not path.exists():
+        return []
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _number(text: Any) -> float | None:
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return None
+
+
+def _same(cell: str, wanted: str) -> bool:
+    a, b = _number(cell), _number(wanted)
+    if a is not None and b is not None:
+        return a == b or (math.isnan(a) and math.isnan(b))
+    return cell.strip().lower() == wanted.strip().lower()
+
+
+class Points:
+    """The aggregated rows of one study, looked up by key values.
+
+    Args:
+        rows: The rows of ``sweep_aggregated.csv``.
+        names: :func:`option_names`.
+    """
+
+    def __init__(self, rows: list[dict[str, str]], names: Mapping[str, Mapping[str, str]]):
+        self.rows = rows
+        self.names = names
+
+    def display(self, key: str, cell: str) -> str:
+        """``cell`` of ``key`` as a page shows it (option names for classes)."""
+        group = "law" if key == "law" else key.removesuffix("._target_")
+        if key == "law" or key.endswith("._target_"):
+            return self.names.get(group, {}).get(cell, cell)
+        return cell
+
+    def column(self, stat: str) -> str:
+        """The CSV column of a statistic's mean (``STAT_mean``) or of a key (``STAT``)."""
+        columns = self.rows[0].keys() if self.rows else ()
+        for name in (f"{stat}_mean", stat):
+            if name in columns:
+                return name
+        raise PageError(f"no column {stat!r} (or {stat}_mean) in the data")
+
+    def select(self, where: Mapping[str, Any]) -> list[dict[str, str]]:
+        """The rows whose keys have the given values (option names allowed)."""
+        rows = self.rows
+        for key, wanted in where.items():
+            if rows and key not in rows[0]:
+                raise PageError(f"no key {key!r} in the data")
+            allowed = wanted if isinstance(wanted, list) else [wanted]
+            rows = [
+                r
+                for r in rows
+                if any(
+                    _same(r[key], str(w)) or _same(self.display(key, r[key]), str(w))
+                    for w in allowed
+                )
+            ]
+        return rows
+
+    def one(self, where: Mapping[str, Any]) -> dict[str, str]:
+        """The single row that matches ``where``."""
+        rows = self.select(where)
+        if len(rows) != 1:
+            raise PageError(f"{len(rows)} points match {dict(where)}, not one")
+        return rows[0]
+
+
+def fmt_number(value: float, fmt: str = ".3g", nan: str = "n/a") -> str:
+    """``value`` formatted, ``nan`` for a missing value, ``inf`` as ``never``."""
+    if math.isnan(value):
+        return nan
+    if math.isinf(value):
+        return "never"
+    return format(value, fmt)
+
+
+def with_ci(points: Points, row: Mapping[str, str], stat: str, fmt: str, nan: str) -> str:
+    """Mean of ``stat`` at ``row``, with its 95 % interval in brackets when it has one."""
+    mean = _number(row.get(points.column(stat)))
+    text = fmt_number(math.nan if mean is None else mean, fmt, nan)
+    low, high = _number(row.get(f"{stat}_ci_low")), _number(row.get(f"{stat}_ci_high"))
+    if mean is None or math.isnan(mean) or low is None or high is None:
+        return text
+    if math.isnan(low) or math.isnan(high):
+        return text
+    return f"{text} ({format(low, fmt)} to {format(high, fmt)})"
+
+
+def parse_where(text: str) -> dict[str, Any]:
+    """``key=value, key=a|b`` as a dict (a value with ``|`` is a list of alternatives)."""
+    where: dict[str, Any] = {}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, eq, value = part.partition("=")
+        if not eq:
+            raise PageError(f"filter {part!r} is not key=value")
+        alternatives = [v.strip() for v in value.split("|")]
+        where[key.strip()] = alternatives if len(alternatives) > 1 else alternatives[0]
+    return where
+
+
+_PLACEHOLDER = re.compile(r"\{\{\s*(.+?)\s*\}\}", re.DOTALL)
+"""A placeholder; it may run over several lines of the template."""
+_EXPRESSION = re.compile(
+    r"^(?:(?P<op>ci|min|max|gain)\s+)?(?P<stat>[\w.]+)(?:\s*/\s*(?P<x>[\w.]+))?"
+    r"(?:\s*@\s*(?P<where>[^:]*?))?(?:\s*:\s*(?P<fmt>[^:]+))?$"
+)
+
+
+def evaluate(points: Points, expression: str, other: Callable[[str], Points] | None = None) -> str:
+    """The text of one number placeholder (``{{ci swarm_ratio @ law=paper}}``); the
+    filter ``study=NAME`` reads another study's points, through ``other``.
+    """
+    match = _EXPRESSION.match(expression)
+    if not match:
+        raise PageError(f"cannot read placeholder {{{{{expression}}}}}")
+    op, stat, x = match["op"], match["stat"], match["x"]
+    where = parse_where(match["where"] or "")
+    if "study" in where:
+        if other is None:
+            raise PageError("study=... is not available here")
+        points = other(str(where.pop("study")))
+    fmt = (match["fmt"] or ".3g").strip()
+    if (op == "gain") != (x is not None):
+        raise PageError(f"'Y / X' goes with gain, in {{{{{expression}}}}}")
+    if op == "gain":
+        rows = points.select(where)
+        xs = np.array([_number(r[points.column(str(x))]) for r in rows], dtype=float)
+        ys = np.array([_number(r[points.column(stat)]) for r in rows], dtype=float)
+        keep = np.isfinite(xs) & np.isfinite(ys) & (xs > GAIN_MIN_X)
+        if keep.sum() < 2:
+            raise PageError(f"fewer than two points with {x} > 0 match {where}")
+        gain = float(xs[keep] @ ys[keep] / (xs[keep] @ xs[keep]))
+        return fmt_number(gain, fmt)
+    if op in ("min", "max"):
+        rows = points.select(where)
+        values = [_number(r[points.column(stat)]) for r in rows]
+        finite = [v for v in values if v is not None and math.isfinite(v)]
+        if not finite:
+            raise PageError(f"no finite {stat} matches {where}")
+        return fmt_number(min(finite) if op == "min" else max(finite), fmt)
+    row = points.one(where)
+    if op == "ci":
+        return with_ci(points, row, stat, fmt, "n/a")
+    cell = row[points.column(stat)]
+    value = _number(cell)
+    if value is None:
+        return points.display(stat, cell)
+    return fmt_number(value, fmt)
+
+
+def _sort_key(points: Points, keys: Sequence[str]) -> Any:
+    def key(row: Mapping[str, str]) -> tuple:
+        out: list[tuple[int, float, str]] = []
+        for k in keys:
+            value = _number(row.get(k))
+            if value is None:
+                out.append((1, 0.0, points.display(k, row.get(k, ""))))
+            else:
+                out.append((0, value, ""))
+        return tuple(out)
+
+    return key
+
+
+def _row(cells: Iterable[str]) -> str:
+    """A Markdown table row (``|`` within a cell escaped, as tables need)."""
+    return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+
+def _cell(points: Points, row: Mapping[str, str], column: Mapping[str, Any]) -> str:
+    """One table cell: a statistic's mean (with its interval when ``ci``), or a key."""
+    if "stat" in column:
+        fmt, nan = str(column.get("fmt", ".3g")), str(column.get("nan", "n/a"))
+        if column.get("ci"):
+            return with_ci(points, row, str(column["stat"]), fmt, nan)
+        value = _number(row.get(points.column(str(column["stat"]))))
+        return fmt_number(math.nan if value is None else value, fmt, nan)
+    key = str(column["key"])
+    if key not in row:
+        raise PageError(f"no key {key!r} in the data")
+    return f"`{points.display(key, row[key])}`"
+
+
+def render_pivot(points: Points, rows: list[dict[str, str]], spec: Mapping[str, Any]) -> str:
+    """A statistic laid out with one key down and another across (``pivot:`` with
+    ``rows``, ``columns``, ``stat`` and optionally ``ci``, ``fmt``, ``nan``, ``label``).
+    """
+    down, across = str(spec["rows"]), str(spec["columns"])
+    for key in (down, across):
+        if key not in rows[0]:
+            raise PageError(f"no key {key!r} in the data")
+    order = _sort_key(points, [down]), _sort_key(points, [across])
+    ys = list(dict.fromkeys(r[down] for r in sorted(rows, key=order[0])))
+    xs = list(dict.fromkeys(r[across] for r in sorted(rows, key=order[1])))
+    corner = str(spec.get("label") or f"{down} \\ {across}")
+    header = [corner, *(f"`{points.display(across, x)}`" for x in xs)]
+    lines = [_row(header), "|" + "---|" * len(header)]
+    for y in ys:
+        cells = [f"`{points.display(down, y)}`"]
+        for x in xs:
+            match = [r for r in rows if r[down] == y and r[across] == x]
+            if len(match) > 1:
+                raise PageError(f"{len(match)} points at {down}={y}, {across}={x}, not one")
+            cells.append(_cell(points, match[0], spec) if match else "")
+        lines.append(_row(cells))
+    return "\n".join(lines)
+
+
+def render_table(points: Points, spec: Mapping[str, Any]) -> str:
+    """A Markdown table of the rows ``spec`` selects: in its ``columns``, or laid out
+    by its ``pivot``.
+    """
+    rows = points.select(spec.get("where") or {})
+    if not rows:
+        raise PageError(f"the table's filter {spec.get('where')} matches no point")
+    if "pivot" in spec:
+        return render_pivot(points, rows, spec["pivot"])
+    rows = sorted(rows, key=_sort_key(points, list(spec.get("sort") or [])))
+    columns = [c if isinstance(c, dict) else {"key": c} for c in spec.get("columns") or []]
+    if not columns:
+        raise PageError("the table lists no columns")
+    header = [str(c.get("label") or c.get("key") or c.get("stat")) for c in columns]
+    lines = [_row(header), "|" + "---|" * len(columns)]
+    for row in rows:
+        lines.append(_row(_cell(points, row, c) for c in columns))
+    return "\n".join(lines)
+
+
+def split_front_matter(text: str) -> tuple[dict[str, Any], str]:
+    """The template's YAML front matter (empty without one) and its body."""
+    if text.startswith("---\n"):
+        end = text.find("\n---\n", 4)
+        if end < 0:
+            raise PageError("front matter without its closing '---'")
+        meta = yaml.safe_load(text[4:end]) or {}
+        if not isinstance(meta, dict):
+            raise PageError("front matter is not a mapping")
+        return meta, text[end + 5 :]
+    return {}, text
+
+
+def default_template(study: Study, points: Points) -> str:
+    """The template of a study without one: its keys, main statistics and figure."""
+    keys = [k for k in declared_primary(study.name) if not points.rows or k in points.rows[0]]
+    stats = [s for s in DEFAULT_STATS if points.rows and f"{s}_mean" in points.rows[0]]
+    columns = [*keys, *({"stat": s, "ci": True} for s in stats)]
+    meta = yaml.safe_dump({"table": {"sort": keys, "columns": columns}}, sort_keys=False)
+    return (
+        f"---\n{meta}---\n# Study `{study.name}`\n\n"
+        f"The study preset `conf/experiment/{study.name}.yaml` says what it varies.\n\n"
+        "{{table}}\n\n{{figure}}\n\n{{commands}}\n"
+    )
+
+
+def commands(study: Study) -> str:
+    """The commands that regenerate the page's data and the page."""
+    s = study.name
+    sweep = f"python -m analysis.sweep multirun/{s} --out figures/sweeps/{s}"
+    text = (
+        f"Regenerate: `make sweep-{s}` (the sweep, then `{sweep}` and "
+        f"`python -m analysis.study_pages {s}`); from existing logs, the last two alone."
+    )
+    if study.data.exists():
+        text += (
+            f" Every number on this page is read from [`data/{s}.csv`](data/{s}.csv), the "
+            "sweep's `sweep_aggregated.csv`."
+        )
+    else:
+        text += (
+            f" No copy of the sweep's `sweep_aggregated.csv` is in `docs/studies/data/` yet: "
+            f"the numbers on this page are quoted from a run of the sweep, and `{sweep}` "
+            "prints them."
+        )
+    return text
+
+
+def render(study: Study, names: Mapping[str, Mapping[str, str]]) -> str:
+    """The page of ``study``: its template with every placeholder filled from its data."""
+    points = Points(read_points(study.data), names)
+    source = study.template.read_text() if study.template.exists() else None
+    text = source if source is not None else default_template(study, points)
+    meta, body = split_front_matter(text)
+    where = study.template if source is not None else "default template"
+
+    def other(name: str) -> Points:
+        rows = read_points(Study(name, study.figures, study.docs).data)
+        if not rows:
+            raise PageError(f"no data for study {name!r}")
+        return Points(rows, names)
+
+    def fill(match: re.Match[str]) -> str:
+        expression = " ".join(match[1].split())
+        try:
+            if expression == "figure":
+                return f"![{study.name}](../sweeps/{study.name}.png)"
+            if expression == "commands":
+                return commands(study)
+            if expression == "csv":
+                return f"[`data/{study.name}.csv`](data/{study.name}.csv)"
+            if not points.rows:
+                raise PageError(f"no data ({study.data} is missing)")
+            if expression == "table" or expression.startswith("table "):
+                name = expression.removeprefix("table").strip()
+                spec = (meta.get("tables") or {}).get(name) if name else meta.get("table")
+                if not spec:
+                    raise PageError(f"no table {name or 'table'!r} in the front matter")
+                return render_table(points, spec)
+            return evaluate(points, expression, other)
+        except PageError as err:
+            raise PageError(f"{where}: {{{{{expression}}}}}: {err}") from None
+
+    header = (
+        f"<!-- Generated by `python -m analysis.study_pages {study.name}` from "
+        f"{'`studies/' + study.name + '.in.md`' if source is not None else 'its default template'}"
+        f" and `studies/data/{study.name}.csv`: edit the template, not this file. -->\n"
+    )
+    page = _PLACEHOLDER.sub(fill, body)
+    if "{{" in page or "}}" in page:
+        raise PageError(f"{where}: an unclosed placeholder")
+    return header + page
+
+
+def studies(docs: Path, figures: Path) -> list[str]:
+    """Every study with a template or with an aggregated CSV under ``figures``."""
+    names = {p.name.removesuffix(".in.md") for p in (docs / "studies").glob("*.in.md")}
+    names |= {p.parent.name for p in figures.glob("*/sweep_aggregated.csv")}
+    return sorted(names)
+
+
+def main(argv: Iterable[str] | None = None) -> int:
+    """Render the pages; exit status 2 with one line when a template does not render."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("study", nargs="*", help="studies (default: all)")
+    parser.add_argument("--figures", type=Path, default=Path("figures/sweeps"))
+    parser.add_argument("--docs", type=Path, default=ROOT / "docs")
+    args = parser.parse_args(None if argv is None else list(argv))
+    names = option_names()
+    for name in args.study or studies(args.docs, args.figures):
+        study = Study(name, args.figures, args.docs)
+        copy_inputs(study)
+        try:
+            page = render(study, names)
+        except PageError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
+        write_text(study.page, page)
+        print(study.page)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
