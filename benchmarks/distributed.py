@@ -220,7 +220,9 @@ def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> No
     from harness.grid import Grid as GridType
     from harness.loop import ClosedLoop
 
+    # two rounds before the start: the memory does not depend on them, the time does
     overrides = ["estimator=distributed", f"agents.n={n_robots}", f"estimator.radius={radius}",
+                 "estimator.initial_rounds=2",
                  f"+design={design}"]  # fmt: skip
     cfg = compose_config(overrides)
     estimate = check_memory(cfg, GridType.square(int(cfg.grid.n), float(cfg.grid.length)))
