@@ -18,7 +18,8 @@ from harness.mcap_log import METRIC_KEYS
 from harness.records import Command, ControlInput
 from harness.run import run
 
-NETWORK_KEYS = METRIC_KEYS[-6:]
+NETWORK_KEYS = METRIC_KEYS[-8:]
+assert NETWORK_KEYS[0] == "consensus_l2"
 
 SMALL = ("grid.n=16", "agents.n=600", "sim.dt=0.01", "log.progress=off")  # binned plant KDE
 
@@ -77,6 +78,8 @@ def test_log_holds_the_three_estimates_and_the_network_metrics(tmp_path, compose
     for key in NETWORK_KEYS:
         values = np.asarray(log.metrics[key], dtype=float)
         assert np.isfinite(values).all(), key
+    # the command disagreement from the first step on (the reference's command is there)
+    assert np.isfinite(np.asarray(log.metrics["command_disagreement"], dtype=float)).all()
     assert set(log.metrics) == set(METRIC_KEYS)
     # the logged robot's field is robot 7's estimate: it differs from the mean and the
     # reference (graph of radius 0.1 on 200 robots, consensus not exact)
@@ -89,7 +92,7 @@ def test_centralised_runs_log_the_network_metrics_as_null(tmp_path, compose, smo
     result = run(compose(list(smoke)), tmp_path)
     assert result.state == "completed"
     log = load_run(tmp_path)
-    for key in NETWORK_KEYS:
+    for key in (*NETWORK_KEYS, "command_disagreement"):
         assert np.isnan(np.asarray(log.metrics[key], dtype=float)).all(), key
     assert "/fields/p_hat_central" not in log.fields
 
