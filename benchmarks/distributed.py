@@ -17,7 +17,7 @@ the plant's KDE and limit loop and the logged network metrics included.
 
 Targets: the closed loop -- graph + consensus + per-robot filters + per-robot
 law (+ model and robot step) -- <= 20 ms per step (>= 50 steps/s) at N = 1024, n = 30,
-``gradient="grid"``, radius 0.05 to 0.2 and k-nearest; N = 4096 must run. Each line
+radius 0.05 to 0.2 and k-nearest; N = 4096 must run. Each line
 prints its figure against the target; memory is the bytes held per robot.
 """
 
@@ -82,7 +82,6 @@ class Clock:
 
 def run(
     n_robots: int,
-    gradient: str,
     radius: float | None,
     k: int | None,
     steps: int,
@@ -97,7 +96,7 @@ def run(
     swarm = Swarm(g, Box().sample(n_robots, g, rng), SIGMA)
     pos = swarm.positions  # moved in place by the robot step
     est = RobotEstimators(
-        g, DT, n_robots, H, FilterSettings(), radius=radius, k_nearest=k, gradient=gradient,
+        g, DT, n_robots, H, FilterSettings(), radius=radius, k_nearest=k,
         initial_rounds=initial_rounds,
     )  # fmt: skip
     law = PaperControl(target_density, ALPHA, SIGMA).at_cells
@@ -108,35 +107,31 @@ def run(
         if warmup and step == warmup:  # time from here on
             clock = Clock()
         p_mean = e.p_hat.mean(axis=0).reshape(g.shape)
-        q_mean = None if e.q_hat is None else e.q_hat.mean(axis=0).reshape(2, *g.shape)
 
-        def model(p_mean=p_mean, q_mean=q_mean):
-            q = g.gradient(p_mean) if q_mean is None else q_mean
+        def model(p_mean=p_mean):
+            q = g.gradient(p_mean)
             return fp.matrix(paper_law(p_mean, q, target_density, ALPHA, SIGMA))
 
         a = clock("filter model A (mean estimate)", model)
         sweeps.append(jacobi_sweeps(stencil_coefficients(g, a, DT)[0]))
         v = clock(
             "per-robot law",
-            lambda e=e: own_velocities(g, law, e.p_hat, pos, e.q_hat),
+            lambda e=e: own_velocities(g, law, e.p_hat, pos),
         )
         clock("robot step", lambda v=v: swarm.step_robots(v, DT, rng))
         w = clock("graph", lambda: est._graph(pos))
-        z = clock("consensus", lambda w=w: est.consensus.step(pos, w))
-        y, y_g = est._split(z)
-        clock("per-robot filters", lambda y=y, y_g=y_g, a=a: est.filters.step(y, a, y_g))
+        y = clock("consensus", lambda w=w: est.consensus.step(pos, w))
+        clock("per-robot filters", lambda y=y, a=a: est.filters.step(y, a))
         e = est._estimate(y)
         clock("(components, logged)", lambda e=e: n_components(e.adjacency))
         clock("(algebraic connectivity, logged)", lambda e=e: algebraic_connectivity(e.adjacency))
     graph = f"radius {radius}" if radius is not None else f"k = {k}"
     counts = est.communication(est.adjacency)
-    tracked = est.filters.gradient.tracks_kernel_gradient  # the gradient filter's solves
-    extra = f", PCG iterations {est.filters.poisson.iterations}" if tracked else ""
     print(
-        f"  N = {n_robots}, gradient = {gradient}, {graph}: mean degree "
+        f"  N = {n_robots}, {graph}: mean degree "
         f"{counts['mean_degree']:.1f}, {counts['messages']:.1f} messages "
         f"({counts['bytes'] / 1e3:.0f} kB) per robot per step, Jacobi sweeps "
-        f"{min(sweeps[warmup:])}..{max(sweeps[warmup:])} (a priori){extra}"
+        f"{min(sweeps[warmup:])}..{max(sweeps[warmup:])} (a priori)"
     )
     print(
         f"    memory {est.memory_bytes() / n_robots / 1e3:.1f} kB per robot "
@@ -145,9 +140,7 @@ def run(
     clock.report(skip=2 if warmup == 0 else 0, target=target)
 
 
-def app_loop(
-    n_robots: int, radius: float, gradient: str, steps: int, design: str = "grid"
-) -> float:
+def app_loop(n_robots: int, radius: float, steps: int, design: str = "grid") -> float:
     """Milliseconds per step of the loop the app builds with ``estimator=distributed``
     and ``+design=design`` (robots, plant's KDE and ``N -> infinity`` limit, graph,
     consensus, per-robot filters, the centralised reference filters, network metrics,
@@ -162,7 +155,6 @@ def app_loop(
             "estimator=distributed",
             f"agents.n={n_robots}",
             f"estimator.radius={radius}",
-            f"estimator.gradient={gradient}",
             f"+design={design}",
         ]
     )
@@ -190,17 +182,16 @@ def bench_app(quick: bool) -> bool:
     """
     print("Decentralised loop as the app builds it (n = 30, estimator=distributed):")
     ok = True
-    cases = [(1024, 0.1, "grid", 200, TARGET_MS, "grid")]
-    cases += [(4096, 0.1, "grid", 20, None, d) for d in DESIGNS]
-    cases.append((1024, 0.1, "filter", 3, TARGET_MS, "grid"))
+    cases: list[tuple[int, float, int, float | None, str]] = [(1024, 0.1, 200, TARGET_MS, "grid")]
+    cases += [(4096, 0.1, 20, None, d) for d in DESIGNS]
     fastest = np.inf
-    for n_robots, radius, gradient, steps, target, design in cases:
+    for n_robots, radius, steps, target, design in cases:
         if quick:
             steps = max(1, steps // 4)
-        ms = app_loop(n_robots, radius, gradient, steps, design)
+        ms = app_loop(n_robots, radius, steps, design)
         if n_robots == 4096:
             fastest = min(fastest, ms)
-        name = f"N = {n_robots}, r = {radius}, gradient = {gradient}, {design}"
+        name = f"N = {n_robots}, r = {radius}, {design}"
         ok &= record(name, 1e3 / ms, "steps/s", None if target is None else 1e3 / target, ">=")
     name = "N = 4096, r = 0.1, fastest design"
     ok &= record(name, 1e3 / fastest, "steps/s", 1e3 / TARGET_MS, ">=")
@@ -271,9 +262,6 @@ def main() -> None:
     parser.add_argument(
         "--memory", nargs=2, metavar=("N", "DESIGN"), help="one memory case (in its own process)"
     )
-    parser.add_argument(
-        "--gradient-filter", action="store_true", help="also time gradient='filter' (slow)"
-    )
     args = parser.parse_args()
     if args.memory:
         with threadpool_limits(1):
@@ -290,23 +278,18 @@ def main() -> None:
         f"numba threads {args.threads}; BLAS pinned to 1 thread; n = 30; "
         f"initial_rounds {args.initial_rounds}; warmup {args.warmup} steps"
     )
-    cases: list[tuple[int, str, float | None, int | None, float | None]] = [
-        (1024, "grid", 0.05, None, TARGET_MS),
-        (1024, "grid", 0.1, None, TARGET_MS),
-        (1024, "grid", 0.2, None, TARGET_MS),
-        (1024, "grid", None, 8, TARGET_MS),
-        (4096, "grid", 0.05, None, None),
+    cases: list[tuple[int, float | None, int | None, float | None]] = [
+        (1024, 0.05, None, TARGET_MS),
+        (1024, 0.1, None, TARGET_MS),
+        (1024, 0.2, None, TARGET_MS),
+        (1024, None, 8, TARGET_MS),
+        (4096, 0.05, None, None),
     ]
-    if args.gradient_filter:
-        cases.append((1024, "filter", 0.05, None, None))
     if args.only is not None:
         cases = [cases[args.only]]
     with threadpool_limits(1):
-        for n_robots, gradient, radius, k, target in cases:
-            run(
-                n_robots, gradient, radius, k, args.steps, args.initial_rounds, target,
-                args.warmup,
-            )  # fmt: skip
+        for n_robots, radius, k, target in cases:
+            run(n_robots, radius, k, args.steps, args.initial_rounds, target, args.warmup)
 
 
 if __name__ == "__main__":

@@ -364,11 +364,11 @@ class FieldLaw:
                 "(it has no at_cells of its own, or the plant has no robots)"
             )
         grid = self.target.grid
-        robots = own_velocities(grid, law.at_cells, own.p_hat, inp.positions, own.q_hat)
+        robots = own_velocities(grid, law.at_cells, own.p_hat, inp.positions, own.q_hat, own.order)
         reference = None
         if own.reference is not None:  # every robot holding the reference's estimate
             shared = np.broadcast_to(own.reference, own.p_hat.shape)
-            reference = own_velocities(grid, law.at_cells, shared, inp.positions)
+            reference = own_velocities(grid, law.at_cells, shared, inp.positions, order=own.order)
         if ff is not None:
             drift = interpolate(grid, ff.centres, inp.positions)
             robots = robots + drift

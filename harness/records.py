@@ -67,12 +67,14 @@ class RobotEstimates:
         p_hat: Robot ``i``'s density estimate in row ``i``, ``(N, M)`` (1 / length^2),
             cells in C order of the grid.
         q_hat: Gradient estimates ``(N, 2M)`` (``x`` block then ``y`` block, 1 /
-            length^3), or None when each robot takes the grid gradient of its own
-            ``p_hat_i`` (a law evaluates that at the robot's cells).
+            length^3), or None when each robot takes the central differences of its own
+            ``p_hat_i`` (a law evaluates them at the robot's cells).
         reference: The centralised reference's density estimate ``(M,)`` (1 /
             length^2) the robots are measured against, or None. A law given it also
             reports the velocities it would command from it at the robots' positions
             (:attr:`Command.reference`).
+        order: The order of those central differences, 2 (``G``) or 4 (``G_4``)
+            (:func:`harness.robot_law.grid_gradient`); also used for the reference.
 
     The arrays may be an estimator's own state (a copy would cost ``N M`` values per
     step), like ``StepRecord.positions``: valid until the next step, which may
@@ -82,6 +84,7 @@ class RobotEstimates:
     p_hat: np.ndarray
     q_hat: np.ndarray | None
     reference: np.ndarray | None = None
+    order: int = 2
 
 
 @dataclass(frozen=True)
@@ -160,8 +163,8 @@ class Command:
             robots then move by the field's bilinear interpolant at their positions.
         reference: Velocities ``(2, N)`` (length / s) the law commands at the robots'
             positions from the centralised reference's estimate
-            (:attr:`RobotEstimates.reference`, with the grid gradient), or None;
-            compared with ``robots`` by the ``command_disagreement`` metric.
+            (:attr:`RobotEstimates.reference`, with the robots' central differences),
+            or None; compared with ``robots`` by the ``command_disagreement`` metric.
     """
 
     field: VelocityField | None

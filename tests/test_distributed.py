@@ -27,7 +27,7 @@ from harness.filters.local import LocalFilters
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.kde import KDE
-from harness.robot_law import own_velocities, own_velocities_reference
+from harness.robot_law import grid_gradient, own_velocities, own_velocities_reference
 from harness.velocity import VelocityField
 
 H = 0.04
@@ -94,22 +94,19 @@ def test_compiled_consensus_step_matches_scipy_and_keeps_the_mean_at_the_kde(rng
     g = Grid.square(12)
     n = 80
     pos = rng.random((2, n))
-    dac = DynamicAverageConsensus(g, H, gradient=True, rounds=2, gain=0.7)
+    dac = DynamicAverageConsensus(g, H, rounds=2, gain=0.7)
     kde = KDE(g, H, method="exact")
     adj = communication_graph(pos, radius=0.15)
     z = dac.initialize(pos, consensus_weights(adj, 0.7)[0]).copy()
     for _ in range(15):
-        phi_old = robot_kernels(g, pos, H, gradient=True)
+        phi_old = robot_kernels(g, pos, H)
         pos = np.clip(pos + 0.03 * rng.normal(size=pos.shape), 0, 1)  # graph changes
         w, _ = consensus_weights(communication_graph(pos, radius=0.15), 0.7)
-        ref, _ = dac.reference_step(z, robot_kernels(g, pos, H, gradient=True), phi_old, w)
+        ref, _ = dac.reference_step(z, robot_kernels(g, pos, H), phi_old, w)
         z = dac.step(pos, w).copy()
         np.testing.assert_allclose(z, ref, atol=1e-12 * abs(ref).max())
-        p, grad = kde.exact(pos)
-        np.testing.assert_allclose(z[:, : g.size].mean(axis=0), p.ravel(), atol=1e-12 * p.max())
-        np.testing.assert_allclose(
-            z[:, g.size :].mean(axis=0), grad.ravel(), atol=1e-12 * abs(grad).max()
-        )
+        p, _ = kde.exact(pos)
+        np.testing.assert_allclose(z.mean(axis=0), p.ravel(), atol=1e-12 * p.max())
 
 
 def test_isolated_robot_tracks_only_its_own_kernel(rng):
@@ -172,6 +169,8 @@ def _swarm_and_velocity(g, rng, n):
 
 
 def test_vectorised_filters_equal_one_local_filter_per_robot(rng):
+    """Each robot's density filter is the centralised local filter's on its own
+    observation (its gradient filter runs beside it and does not touch it)."""
     g = Grid(10, 9)
     n = 6
     # the per-robot filters do not carry the band limit yet: the centralised reference is
@@ -182,12 +181,10 @@ def test_vectorised_filters_equal_one_local_filter_per_robot(rng):
     fp = FokkerPlanck(g, SIGMA)
     ys = [1.0 + 0.3 * rng.random((n, g.size))]
     yg = [5.0 * rng.normal(size=(n, 2 * g.size))]
-    batch = RobotFilters(g, dt, model, gradient="filter")
-    batch.poisson.tol = 1e-13
-    batch.initialize(ys[0], yg[0])
+    batch = RobotFilters(g, dt, model)
+    batch.initialize(ys[0])
     refs = [LocalFilters(g, SIGMA, dt, model) for _ in range(n)]
     for i, f in enumerate(refs):
-        f.poisson.tol = 1e-13
         f.initialize(ys[0][i].reshape(g.shape), yg[0][i].reshape(2, *g.shape))
     for step in range(12):
         # strong and weak transport: both the Neumann series and the sparse-LU branch
@@ -197,61 +194,22 @@ def test_vectorised_filters_equal_one_local_filter_per_robot(rng):
         y = 1.0 + 0.3 * rng.random((n, g.size))
         y_g = 5.0 * rng.normal(size=(n, 2 * g.size))
         x0, d0 = batch.x.copy(), batch.d.copy()
-        batch.step(y, a, y_g)
+        batch.step(y, a)
         x_ref, d_ref = density_filter_reference(x0, d0, y, a, dt, model)
         np.testing.assert_allclose(batch.x, x_ref, atol=1e-12 * abs(x_ref).max())
         np.testing.assert_allclose(batch.d, d_ref, rtol=1e-12)
         for i, f in enumerate(refs):
-            p_i, q_i = f.step(y[i].reshape(g.shape), y_g[i].reshape(2, *g.shape), v, a)
+            p_i, _ = f.step(y[i].reshape(g.shape), y_g[i].reshape(2, *g.shape), v, a)
             np.testing.assert_allclose(batch.x[i], p_i.ravel(), atol=1e-11 * abs(p_i).max())
             np.testing.assert_allclose(batch.d[i], f.d, rtol=1e-11)
-            np.testing.assert_allclose(batch.gradient.c_g[i], f.c_g, rtol=1e-11)
-            np.testing.assert_allclose(batch.q_hat[i], q_i.ravel(), atol=1e-9 * abs(q_i).max())
 
 
-def test_batched_poisson_matches_sparse_lu_per_robot_and_refuses_to_stop_early(rng):
-    """Each robot's weighted Poisson solve (rough weights spanning two decades, a
-    rectangular grid) equals a sparse LU of its own operator with cell 0 pinned,
-    shifted to zero mean; the Laplacian pseudo-inverse equals the dense one; too few
-    iterations raise instead of returning an unconverged update."""
-    from harness.decentralised.poisson import BatchedPoisson
-    from harness.fokker_planck import NumericalError
-
-    g = Grid(14, 11, 0.0, 1.2, 0.0, 1.0)
-    n = 5
-    bp = BatchedPoisson(g, tol=1e-12)
-    gm = g.gradient_matrix.tocsr()
-    c = np.exp(rng.uniform(0.0, np.log(100.0), size=(n, 2 * g.size)))
-    b = rng.normal(size=(n, g.size))
-    b -= b.mean(axis=1, keepdims=True)  # the range of G^T
-    x = bp.solve(c, b)
-    for i in range(n):
-        op = (gm.T @ sp.diags(c[i]) @ gm).tolil()
-        op[0, :] = 0.0
-        op[:, 0] = 0.0
-        op[0, 0] = 1.0
-        rhs = b[i].copy()
-        rhs[0] = 0.0
-        ref = spla.splu(op.tocsc()).solve(rhs)
-        ref -= ref.mean()
-        np.testing.assert_allclose(x[i], ref, atol=1e-9 * np.abs(ref).max())
-    lap = (gm.T @ gm).toarray()
-    np.testing.assert_allclose(
-        bp.laplacian_pinv(b), b @ np.linalg.pinv(lap).T, atol=1e-10 * np.abs(b).max()
-    )
-    with pytest.raises(NumericalError, match="did not reach the tolerance"):
-        bp.solve(c, b, maxiter=2)
-    bad = c.copy()
-    bad[2, 7] = np.nan  # a broken robot's weights: refused, never a NaN estimate
-    with pytest.raises(NumericalError, match="not finite and positive"):
-        bp.solve(bad, b)
-
-
-@pytest.mark.parametrize("gradient", ["filter", "grid"])
-def test_complete_graph_equals_the_centralised_filter(gradient):
+@pytest.mark.parametrize("order", [2, 4])
+def test_complete_graph_equals_the_centralised_filter(order):
     """Complete graph: eps = 1/N and W = 1 1^T / N, one round is exact consensus; every
-    robot then runs the centralised filter on the centralised KDE, moves on the law
-    of the centralised estimate, and the two closed loops coincide."""
+    robot then runs the centralised density filter on the centralised KDE, moves on the
+    law of the centralised estimate and its central differences (order 2 or 4), and the
+    two closed loops coincide."""
     rng = np.random.default_rng(5)
     g = Grid.square(16)
     n, dt, alpha = 60, 0.01, 0.003
@@ -262,30 +220,22 @@ def test_complete_graph_equals_the_centralised_filter(gradient):
     # the same local filter without it (every cosine mode kept)
     settings = FilterSettings(band_limit=np.inf)
     kde = KDE(g, H, method="exact")
-    est = RobotEstimators(g, dt, n, H, settings, radius=2.0, gradient=gradient)
-    est.filters.poisson.tol = 1e-13
+    est = RobotEstimators(g, dt, n, H, settings, radius=2.0)
     central = LocalFilters(g, SIGMA, dt, MeasurementModel(n, H, settings))
-    central.poisson.tol = 1e-13
     fp = FokkerPlanck(g, SIGMA)
     e = est.initialize(pos)
     central.initialize(*kde.exact(pos))
     for step in range(30):
         assert e.eps == pytest.approx(1.0 / n)
-        p_c, q_c = central.estimates
+        p_c, _ = central.estimates
         np.testing.assert_allclose(e.p_hat, np.broadcast_to(p_c.ravel(), e.p_hat.shape),
                                    atol=1e-10 * abs(p_c).max())  # fmt: skip
-        if gradient == "filter":
-            np.testing.assert_allclose(e.q_hat, np.broadcast_to(q_c.ravel(), e.q_hat.shape),
-                                       atol=1e-10 * abs(q_c).max())  # fmt: skip
-            q_robot = e.q_hat
-        else:
-            q_robot = None
-            q_c = g.gradient(p_c)
+        q_c = grid_gradient(g, p_c, order)
         # time-varying gain: a time-varying velocity field
         a_t = alpha * (1.0 + 10.0 * np.sin(0.3 * step) ** 2)
         v_field = paper_law(p_c, q_c, target, a_t, SIGMA)
         law = PaperControl(target, a_t, SIGMA).at_cells
-        v_robots = own_velocities(g, law, e.p_hat, pos, q_robot)
+        v_robots = own_velocities(g, law, e.p_hat, pos, order=order)
         expected = interpolate(g, v_field.centres, pos)
         np.testing.assert_allclose(v_robots, expected, atol=1e-9 * abs(expected).max())
         pos = swarm.step_robots(v_robots, dt, rng)
@@ -308,10 +258,39 @@ def test_own_velocities_match_the_per_robot_field(rng, grid30, target30):
         HeatControl(target30, 0.01, SIGMA, noise_compensation=False),
     ]
     for control in controls:
-        for q in (None, q_hat):
-            fast = own_velocities(grid30, control.at_cells, p_hat, pos, q)
-            ref = own_velocities_reference(grid30, control.field, p_hat, pos, q)
+        for q, order in ((None, 2), (None, 4), (q_hat, 2)):
+            fast = own_velocities(grid30, control.at_cells, p_hat, pos, q, order)
+            ref = own_velocities_reference(grid30, control.field, p_hat, pos, q, order)
             np.testing.assert_allclose(fast, ref, rtol=1e-12, atol=1e-15)
+    with pytest.raises(ValueError, match="order"):
+        own_velocities(grid30, controls[0].at_cells, p_hat, pos, order=3)
+
+
+@pytest.mark.parametrize("order", [2, 4])
+def test_central_differences_scale_each_cosine_mode_by_their_factor(order):
+    """``G`` and ``G_4`` map a Neumann cosine mode onto its derivative times
+    ``sin(k dx) / (k dx)`` and ``(8 sin(k dx) - sin(2 k dx)) / (6 k dx)`` (the ghost
+    cells reflected about the walls: exact for cosine modes, wall cells included), on a
+    rectangular grid; ``G`` is :meth:`Grid.gradient`."""
+    g = Grid(13, 11, 0.0, 1.3, 0.0, 0.9)
+    x, y = g.mesh
+    lx, ly = g.x1 - g.x0, g.y1 - g.y0
+
+    def factor(k: float, d: float) -> float:
+        t = k * d
+        return np.sin(t) / t if order == 2 else (8 * np.sin(t) - np.sin(2 * t)) / (6 * t)
+
+    for a, b in ((1, 0), (2, 3), (5, 4), (12, 10)):
+        kx, ky = a * np.pi / lx, b * np.pi / ly
+        f = np.cos(kx * x) * np.cos(ky * y)
+        exact = np.stack([
+            -kx * np.sin(kx * x) * np.cos(ky * y) * (factor(kx, g.dx) if a else 0.0),
+            -ky * np.cos(kx * x) * np.sin(ky * y) * (factor(ky, g.dy) if b else 0.0),
+        ])  # fmt: skip
+        got = grid_gradient(g, f, order)
+        np.testing.assert_allclose(got, exact, atol=1e-12 * max(kx, ky))
+    if order == 2:
+        np.testing.assert_array_equal(grid_gradient(g, f, 2), g.gradient(f))
 
 
 def test_metrics_on_known_deviations(rng):

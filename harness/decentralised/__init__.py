@@ -13,10 +13,8 @@ own position, :func:`harness.robot_law.own_velocities`; the robots' step is
 * :mod:`~harness.decentralised.robot_kde`: each robot's KDE kernel on the grid;
 * :mod:`~harness.decentralised.consensus`: dynamic average consensus (derivation,
   invariant, error bound, gain) and the messages it costs;
-* :mod:`~harness.decentralised.filters`: the per-robot fast filters, built from
-  :mod:`~harness.decentralised.density` (the density step, compiled over robots),
-  :mod:`~harness.decentralised.gradient` (the option ``gradient``),
-  :mod:`~harness.decentralised.poisson` (the batched weighted Poisson solve) and
+* :mod:`~harness.decentralised.filters`: the per-robot fast density filters, built from
+  :mod:`~harness.decentralised.density` (the density step, compiled over robots) and
   :mod:`~harness.decentralised.row_solver` (one sparse LU over robots);
 * :mod:`~harness.decentralised.metrics`: the estimates' spread and the network figures;
 * :mod:`~harness.decentralised.estimator`: the assembly, and ``estimator=distributed``

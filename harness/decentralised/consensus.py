@@ -6,17 +6,16 @@ communication graph (:mod:`harness.decentralised.graph`: adjacency ``A``, Laplac
 eigenvalues ``0 = lambda_1 <= lambda_2 <= ... <= lambda_N``); Zheng and Lin, arXiv
 2009.05366 / 2106.05318.
 
-Dynamic average consensus (first-order form). Each robot keeps ``z_i`` (``F`` fields of
-``M`` cells: its kernel, and with the per-robot gradient filter also the kernel's two
-analytic derivatives). With ``W_t = I - eps_t L_t`` and ``m`` rounds per step,
+Dynamic average consensus (first-order form). Each robot keeps ``z_i`` (a field of ``M``
+cells, its estimate of the KDE). With ``W_t = I - eps_t L_t`` and ``m`` rounds per step,
 
     z_i(0)     = [W_0^{m_0} phi(0)]_i,
     z(t + 1)   = W_{t+1}^m ( z(t) + phi(t + 1) - phi(t) )                          (DAC)
 
-(rows are robots; ``phi(t)`` the ``N x FM`` matrix of the robots' kernels at ``X(t)``;
+(rows are robots; ``phi(t)`` the ``N x M`` matrix of the robots' kernels at ``X(t)``;
 ``m_0`` the ``initial_rounds``, by default ``m``: with ``m_0 >> 1`` the robots agree
 before they start moving). Robot ``i`` needs ``z_j`` of its neighbours once per round:
-one message of ``F M`` floats per neighbour per round.
+one message of ``M`` floats per neighbour per round.
 
 *Computing* ``W z``. All off-diagonal weights equal ``eps``, so ``(W z)_i = w_ii z_i +
 eps S_i`` with the neighbour sum ``S_i``; visiting the robots along a Hilbert curve
@@ -98,7 +97,7 @@ exchanges: ``(v, w)`` to compute ``z'``, then ``z'`` to update ``w``; three fiel
 neighbour per round against one.
 
 Messages. A *message* is what one robot sends one neighbour in one exchange: ``C``
-float64 values per field, ``C = F M`` grid values or ``C = K`` band coefficients
+float64 values per field, ``C = M`` grid values or ``C = K`` band coefficients
 (``estimator.messages: band``, :mod:`harness.decentralised.band`). Per robot per step
 the first-order form sends ``m deg_i`` messages of ``C`` values, the PI form ``2 m
 deg_i`` messages (``(v, w)`` of ``2 C`` values, then ``z'`` of ``C``);
@@ -339,14 +338,12 @@ class DynamicAverageConsensus:
     ``DAC`` in the module docstring) or the proportional-integral form (eq. ``PI``),
     on grid fields or on the band's coefficients (:mod:`harness.decentralised.band`).
 
-    State ``z`` of shape ``(N, C)``: ``C = F M`` grid values, or ``C = K`` band
+    State ``z`` of shape ``(N, C)``: ``C = M`` grid values, or ``C = K`` band
     coefficients; the PI form keeps ``w`` of the same shape.
 
     Args:
         grid: The grid.
         bandwidth: Kernel bandwidth ``h`` (length).
-        gradient: Track the kernel's gradient as well (``F = 3``) or not (``F = 1``;
-            the only choice with ``band``).
         rounds: Consensus rounds per step ``m >= 1``.
         gain: ``eps = gain / (1 + d_max)``, ``0 < gain <= 1``.
         initial_rounds: Rounds ``m_0 >= 0`` at ``t = 0``, before the first estimate:
@@ -363,7 +360,6 @@ class DynamicAverageConsensus:
         self,
         grid: Grid,
         bandwidth: float,
-        gradient: bool = False,
         rounds: int = 1,
         gain: float = 1.0,
         initial_rounds: int | None = None,
@@ -381,16 +377,13 @@ class DynamicAverageConsensus:
             raise ValueError(f"consensus form must be one of {', '.join(FORMS)}, got {form!r}")
         if not 0 < integral_gain < 1:
             raise ValueError(f"integral gain must be in (0, 1), got {integral_gain}")
-        if band is not None and gradient:
-            raise ValueError("band messages carry the density only (gradient=grid)")
-        self.grid, self.bandwidth, self.gradient = grid, bandwidth, gradient
+        self.grid, self.bandwidth = grid, bandwidth
         self.rounds, self.gain = int(rounds), gain
         self.initial_rounds, self.chunk = initial_rounds, int(chunk)
         self.form, self.band = form, band
         self.k_i = float(integral_gain) if form == "pi" else 0.0
         self.k_p = 1.0 - self.k_i**2
-        self.fields = 3 if gradient else 1
-        self.columns = band.size if band is not None else self.fields * grid.size
+        self.columns = band.size if band is not None else grid.size
         self.z: np.ndarray | None = None
         self.w: np.ndarray | None = None
         self._buf: np.ndarray | None = None
@@ -417,25 +410,18 @@ class DynamicAverageConsensus:
         self, factors: tuple[np.ndarray, ...], old: tuple[np.ndarray, ...] | None
     ) -> np.ndarray:
         """``phi(t + 1) - phi(t)`` (``phi(0)`` when ``old`` is None), ``(N, C)``."""
-        kx, dkx, ky, dky = factors
+        kx, _, ky, _ = factors
         if self.band is not None:  # the coefficients' change, C_y ky_i (C_x kx_i)^T
             coef = self.band.kernels(kx, ky)
             delta = coef if self._coef is None or old is None else coef - self._coef
             self._coef = coef
             return delta
-        m = self.grid.size
         delta = np.zeros((kx.shape[0], self.columns))
-        parts = [(ky, kx)]
-        if self.gradient:
-            parts += [(ky, dkx), (dky, kx)]
-        olds = [(ky, kx)] * len(parts)  # unused values when old is None (sign 0)
-        if old is not None:
-            okx, odkx, oky, odky = old
-            olds = [(oky, okx)] + ([(oky, odkx), (odky, okx)] if self.gradient else [])
-        sign = -1.0 if old is not None else 0.0
-        for f, ((a, b), (oa, ob)) in enumerate(zip(parts, olds, strict=True)):
-            # a column block (strided rows): the kernel takes any layout
-            _add_kernel_increment(delta[:, f * m : (f + 1) * m], a, b, oa, ob, sign)
+        if old is None:  # the old kernels' values are unused (sign 0)
+            _add_kernel_increment(delta, ky, kx, ky, kx, 0.0)
+        else:
+            okx, _, oky, _ = old
+            _add_kernel_increment(delta, ky, kx, oky, okx, -1.0)
         return delta
 
     def _mixer(self, w: sp.csr_matrix, positions: np.ndarray):
@@ -499,7 +485,7 @@ class DynamicAverageConsensus:
         return ky.T @ kx / n, np.stack([ky.T @ dkx / n, dky.T @ kx / n])
 
     def observation(self) -> np.ndarray:
-        """What each robot's filters observe, ``(N, F M)`` grid fields: ``z`` itself, or
+        """What each robot's filter observes, ``(N, M)`` grid fields: ``z`` itself, or
         the band-limited fields ``Pi F_i`` its coefficients stand for.
         """
         assert self.z is not None, "call initialize first"

@@ -34,7 +34,6 @@ from harness.decentralised.consensus import (
     message_counts,
 )
 from harness.decentralised.filters import RobotFilters
-from harness.decentralised.gradient import GRADIENTS, GridGradient
 from harness.decentralised.graph import algebraic_connectivity, communication_graph
 from harness.decentralised.metrics import network_figures
 from harness.filters.common import FilterSettings, MeasurementModel
@@ -42,6 +41,7 @@ from harness.filters.engines import LocalEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.records import Estimate, RobotEstimates, StepInput
+from harness.robot_law import grid_gradient
 
 
 @dataclass(frozen=True)
@@ -50,15 +50,12 @@ class DistributedEstimate:
 
     Attributes:
         p_hat: ``(N, M)`` density estimates (1 / length^2).
-        q_hat: ``(N, 2M)`` gradient estimates (1 / length^3), or None (grid gradient,
-            computed on demand by :attr:`RobotFilters.q_hat`).
-        observation: ``(N, M)`` tracked observations ``z_i`` (density part).
+        observation: ``(N, M)`` tracked observations ``z_i``.
         adjacency: The step's communication graph.
         eps: The step's consensus gain.
     """
 
     p_hat: np.ndarray
-    q_hat: np.ndarray | None
     observation: np.ndarray
     adjacency: sp.csr_matrix
     eps: float
@@ -69,6 +66,10 @@ SHARES = ("density", "command")
 
 MESSAGES = ("grid", "band")
 """What a message carries: grid fields or the band's coefficients."""
+
+GRADIENTS = {"grid": 2, "fourth_order": 4}
+"""The option ``gradient``: the order of the central differences each robot takes of its
+own density estimate (:func:`harness.robot_law.grid_gradient`)."""
 
 
 class RobotEstimators:
@@ -107,7 +108,6 @@ class RobotEstimators:
         k_nearest: number of nearest neighbours (exactly one of the two).
         rounds: Consensus rounds per step.
         gain: Consensus gain factor in ``(0, 1]``.
-        gradient: ``"grid"`` or ``"filter"`` (:mod:`harness.decentralised.gradient`).
         initial_rounds: Consensus rounds at ``t = 0`` before the first estimate
             (default ``rounds``; see :class:`DynamicAverageConsensus`).
         consensus: ``"first_order"`` or ``"pi"``.
@@ -130,7 +130,6 @@ class RobotEstimators:
         k_nearest: int | None = None,
         rounds: int = 1,
         gain: float = 1.0,
-        gradient: str = "grid",
         initial_rounds: int | None = None,
         consensus: str = "first_order",
         integral_gain: float = 0.5,
@@ -145,14 +144,11 @@ class RobotEstimators:
             raise ValueError(f"share must be one of {SHARES} and messages one of {MESSAGES}")
         self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
         self.share, self.command_rounds = share, int(command_rounds)
-        self.filters = RobotFilters(
-            grid, dt, MeasurementModel(n_robots, bandwidth, settings), gradient
-        )
+        self.filters = RobotFilters(grid, dt, MeasurementModel(n_robots, bandwidth, settings))
         self.band = BandMessages(grid, band_limit / bandwidth) if messages == "band" else None
         self.consensus = DynamicAverageConsensus(
-            grid, bandwidth, gradient=self.filters.gradient.tracks_kernel_gradient,
-            rounds=rounds, gain=gain, initial_rounds=initial_rounds, form=consensus,
-            integral_gain=integral_gain, band=self.band,
+            grid, bandwidth, rounds=rounds, gain=gain, initial_rounds=initial_rounds,
+            form=consensus, integral_gain=integral_gain, band=self.band,
         )  # fmt: skip
         self.adjacency: sp.csr_matrix | None = None
         self._w: sp.csr_matrix | None = None
@@ -163,10 +159,6 @@ class RobotEstimators:
         w, self.consensus.eps = consensus_weights(self.adjacency, self.consensus.gain)
         self._w, self._positions = w, positions
         return w
-
-    def _split(self, z: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-        m = self.grid.size
-        return z[:, :m], (z[:, m:] if self.consensus.gradient else None)
 
     def agree(self, p_hat: np.ndarray) -> np.ndarray:
         """Eq. ``AGREE``: ``command_rounds`` rounds of ``W`` on the robots' estimates (on
@@ -191,23 +183,20 @@ class RobotEstimators:
     def _estimate(self, y: np.ndarray) -> DistributedEstimate:
         f = self.filters
         assert f.x is not None and self.adjacency is not None
-        q = f.gradient.estimate(f.x)
-        return DistributedEstimate(self.agree(f.x), q, y, self.adjacency, self.consensus.eps)
+        return DistributedEstimate(self.agree(f.x), y, self.adjacency, self.consensus.eps)
 
     def initialize(self, positions: np.ndarray) -> DistributedEstimate:
         """Graph, ``z(0)`` and the filters' start from it, at ``t = 0``."""
-        z = self.consensus.initialize(positions, self._graph(positions))
-        y, y_g = self._split(z)
-        self.filters.initialize(np.ascontiguousarray(y), y_g)
+        y = self.consensus.initialize(positions, self._graph(positions))
+        self.filters.initialize(np.ascontiguousarray(y))
         return self._estimate(y)
 
     def step(self, positions: np.ndarray, a: sp.csr_matrix) -> DistributedEstimate:
         """New graph at the new positions, consensus, then every robot's filter step
         under the model ``A`` (the Fokker-Planck matrix of the last interval).
         """
-        z = self.consensus.step(positions, self._graph(positions))
-        y, y_g = self._split(z)
-        self.filters.step(y, a, y_g)
+        y = self.consensus.step(positions, self._graph(positions))
+        self.filters.step(y, a)
         return self._estimate(y)
 
     def communication(self, adj: sp.csr_matrix) -> dict[str, float]:
@@ -231,7 +220,6 @@ class RobotEstimators:
         """Bytes held in per-robot arrays (consensus states and buffer, filter states)."""
         c = self.consensus
         arrays = [c.z, c.w, c._buf, self.filters.x, self.filters.d]
-        arrays += list(self.filters.gradient.arrays())
         arrays += list(c._factors or ())
         return int(sum(a.nbytes for a in arrays if a is not None))
 
@@ -247,11 +235,11 @@ class DistributedEstimator:
     ``initial_rounds`` at ``t = 0``, :mod:`~harness.decentralised.consensus`) tracking
     the mean of the robots' kernels, and per robot the fast density filter
     (:mod:`~harness.decentralised.filters`) on its tracked observation, with the
-    gradient either the grid gradient of the robot's own density estimate (``gradient:
-    grid``) or its own gradient filter (``gradient: filter``, slow: one weighted Poisson
-    solve per robot and step; :mod:`~harness.decentralised.gradient`). The control then
-    moves robot ``i`` by the law evaluated from its own estimates at its own position
-    (a field law's ``at_cells``, :func:`harness.robot_law.own_velocities`).
+    gradient the central differences of the robot's own density estimate, of order 2
+    (``gradient: grid``, ``G p_hat_i``) or 4 (``gradient: fourth_order``, ``G_4
+    p_hat_i``; :func:`harness.robot_law.grid_gradient`). The control then moves robot
+    ``i`` by the law evaluated from its own estimates at its own position (a field law's
+    ``at_cells``, :func:`harness.robot_law.own_velocities`).
 
     The centralised local filters run alongside, with the same parameters, on the exact
     KDE of the robots (the mean of the robots' own kernels, which consensus distributes;
@@ -260,10 +248,10 @@ class DistributedEstimator:
     sqrt(2)`` times the domain side) one round is exact consensus and every robot's
     estimate is the centralised one (tested to 1e-10).
 
-    What the estimate returned to the loop holds: ``p_hat``, ``q_hat`` the robots' mean
-    estimate (the field the log shows, and the velocity field whose Fokker-Planck matrix
-    is the shared transport model of every robot's filter and of the reference); the
-    traces of the reference; each robot's own estimate
+    What the estimate returned to the loop holds: ``p_hat`` the robots' mean estimate and
+    ``q_hat`` its central differences (the field the log shows, and the velocity field
+    whose Fokker-Planck matrix is the shared transport model of every robot's filter and
+    of the reference); the traces of the reference; each robot's own estimate
     (:class:`~harness.records.RobotEstimates`); the fields ``p_hat_central`` (the
     reference's estimate) and ``p_hat_robot`` (robot ``robot``'s); and the network
     metrics (:func:`~harness.decentralised.metrics.network_figures`).
@@ -289,7 +277,7 @@ class DistributedEstimator:
         k_nearest: Neighbours per robot (symmetrised), or None with ``radius``.
         rounds: Consensus rounds per step (``>= 1``).
         gain: Consensus gain factor in ``(0, 1]``: ``eps = gain / (1 + d_max)``.
-        gradient: ``grid`` or ``filter`` (see above).
+        gradient: ``grid`` or ``fourth_order`` (see above).
         initial_rounds: Consensus rounds at ``t = 0`` (``>= 0``).
         robot: Index of the robot whose estimate is logged (``/fields/p_hat_robot``).
         connectivity_every: Steps between evaluations of the graph's algebraic
@@ -362,6 +350,7 @@ class DistributedEstimator:
         require(gain <= 1.0, "gain", gain, "a number in (0, 1]")
         known = isinstance(gradient, str) and gradient in GRADIENTS
         require(known, "gradient", gradient, f"one of {', '.join(GRADIENTS)}")
+        self.order = GRADIENTS[gradient]
         initial_rounds = integer("initial_rounds", initial_rounds, 0)
         for key, value, options in (("consensus", consensus, FORMS), ("share", share, SHARES),
                                     ("messages", messages, MESSAGES)):  # fmt: skip
@@ -372,14 +361,12 @@ class DistributedEstimator:
         band_limit = number("band_limit", band_limit, 0.0, strict=True)
         require(bool(np.isfinite(band_limit)), "band_limit", band_limit, "a finite number > 0")
         command_rounds = integer("command_rounds", command_rounds, 1)
-        require(messages == "grid" or gradient == "grid", "messages", messages,
-                "grid with gradient=filter (band messages carry the density only)")  # fmt: skip
         self.robot = integer("robot", robot, 0)
         require(self.robot < self.n_robots, "robot", robot, f"an index below robots = {robots}")
         self.connectivity_every = integer("connectivity_every", connectivity_every, 1)
         self.network = RobotEstimators(
             grid, dt, self.n_robots, h, settings, radius=radius, k_nearest=k_nearest,
-            rounds=rounds, gain=gain, gradient=gradient, initial_rounds=initial_rounds,
+            rounds=rounds, gain=gain, initial_rounds=initial_rounds,
             consensus=consensus, integral_gain=integral_gain, share=share,
             messages=messages, band_limit=band_limit, command_rounds=command_rounds,
         )  # fmt: skip
@@ -395,14 +382,12 @@ class DistributedEstimator:
     @classmethod
     def memory_estimate(cls, grid: Grid, robots: int = 1, **params: object) -> MemoryEstimate:
         """Per robot: consensus state and buffer, kernel factors, the filters' states
-        and variances (with ``gradient: filter`` three more fields, with ``consensus:
-        pi`` six: the integral state and a round's temporaries, with ``share: command``
-        two), about ``8 (4 + 3 + (4 if filter) + (6 if pi) + (2 if command)) M`` bytes,
-        plus the grid arrays; the graph is ``O(N deg)``.
+        and variances (with ``consensus: pi`` six more fields: the integral state and a
+        round's temporaries, with ``share: command`` two), about ``8 (4 + 3 + (6 if pi)
+        + (2 if command)) M`` bytes, plus the grid arrays; the graph is ``O(N deg)``.
         """
         n = robots if isinstance(robots, int) and robots > 0 else 1
-        gradient = GRADIENTS.get(str(params.get("gradient", "grid")), GridGradient)
-        fields = 7 + gradient.memory_fields
+        fields = 7
         fields += 6 if params.get("consensus") == "pi" else 0
         fields += 2 if params.get("share") == "command" else 0
         per_robot = 8 * fields * grid.size + 8 * (grid.nx + grid.ny) * 4
@@ -417,14 +402,11 @@ class DistributedEstimator:
         network = network_figures(g, est.p_hat, p_central, adj,
                                   self.network.communication(adj), self._connectivity)  # fmt: skip
         p_mean = est.p_hat.mean(axis=0).reshape(g.shape)
-        if est.q_hat is None:
-            q_mean = g.gradient(p_mean)  # G is linear: the mean of G p_hat_i
-        else:
-            q_mean = est.q_hat.mean(axis=0).reshape(2, *g.shape)
+        q_mean = grid_gradient(g, p_mean, self.order)  # linear: the robots' mean
         fields = {"p_hat_central": p_central, "p_hat_robot": est.p_hat[self.robot].reshape(g.shape)}
         return Estimate(
             p_mean, q_mean, *self.central.traces,
-            robots=RobotEstimates(est.p_hat, est.q_hat, np.ravel(p_central)),
+            robots=RobotEstimates(est.p_hat, None, np.ravel(p_central), self.order),
             fields=fields, metrics=network,
         )  # fmt: skip
 

@@ -557,8 +557,7 @@ def laplacian_pinv_spectrum(grid: Grid) -> np.ndarray:
     """The pseudo-inverse of ``G^T G`` in the orthonormal DCT-II basis, ``(ny, nx)``:
     ``1 / lambda`` on the modes with ``lambda > 1e-12 max lambda`` and 0 on the
     constants (``lambda = |D_y phi_b|^2 + |D_x phi_a|^2``, :func:`_gradient_eigenvalues`
-    per axis). Shared by :class:`WeightedPoisson` and the robots' batched solve
-    (:class:`harness.decentralised.poisson.BatchedPoisson`).
+    per axis); :class:`WeightedPoisson` preconditions with it.
     """
     eig_x = _gradient_eigenvalues(grid.nx, grid.dx)
     eig_y = _gradient_eigenvalues(grid.ny, grid.dy)
