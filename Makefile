@@ -111,6 +111,9 @@ sweep-distributed_frontier: $(STAMP)
 		$(PY) -m experiments.closed_loop +experiment=distributed_frontier_centralised
 	$(PY) -m experiments.closed_loop +experiment=distributed_frontier \
 		hydra.sweep.dir=multirun/distributed_frontier
+	$(PY) -m experiments.closed_loop +experiment=distributed_frontier \
+		hydra.sweep.dir=multirun/distributed_frontier '+design=band,command_band' \
+		estimator.radius=null estimator.k_nearest=6 estimator.rounds=10 estimator.band_limit=2.0
 	$(PY) -m analysis.sweep multirun/distributed_frontier --out figures/sweeps/distributed_frontier
 	$(PY) -m analysis.study_pages distributed_frontier
 

@@ -3,7 +3,9 @@
 Study ``distributed_frontier`` (``conf/experiment/distributed_frontier.yaml``): the
 designs of :mod:`harness.decentralised` (``+design=...``: consensus form, what the robots
 agree on, what a message carries) against the communication radius and the consensus
-rounds per step. Its figure puts each point at
+rounds per step, and (``make sweep-distributed_frontier`` adds them to the same sweep
+directory) two designs on the graph of each robot's 6 nearest with ten rounds per step
+and messages of the band ``band_limit = 2``. Its figure puts each point at
 
     x = bytes per robot per step            (tail mean of the metric ``bytes``)
     y = swarm_l2 / swarm_l2 of the centralised loop   (tail means, same seed and settings)
@@ -47,6 +49,14 @@ def design_name(point: dict[str, Any]) -> str:
     return "/".join(str(point[k]) for k in DESIGN_KEYS)
 
 
+def graph_name(point: dict[str, Any]) -> str:
+    """The point's graph: ``r = R``, ``k = K`` (its ``K`` nearest) or both."""
+    radius, k = point.get("estimator.radius"), point.get("estimator.k_nearest")
+    parts = [] if radius is None else [f"r = {float(radius):g}"]
+    parts += [] if k is None else [f"k = {int(k)}"]
+    return ", ".join(parts)
+
+
 def centralised_swarm(sweep_dir: Path, tail: float) -> float:
     """The tail mean of ``swarm_l2`` of the centralised run beside ``sweep_dir``
     (``<sweep_dir>_centralised/run.mcap``), over the last ``tail`` of its time; NaN when
@@ -84,7 +94,8 @@ def frontier_rows(rows: list[dict[str, Any]], central: float) -> list[dict[str, 
     for a in points(rows):
         out.append({
             "design": design_name(a),
-            "radius": float(a["estimator.radius"]),
+            "graph": graph_name(a),
+            "band_limit": a.get("estimator.band_limit"),
             "rounds": int(a["estimator.rounds"]),
             "bytes": float(a["bytes_tail_mean_mean"]),
             "messages": float(a["messages_tail_mean_mean"]),
@@ -95,7 +106,7 @@ def frontier_rows(rows: list[dict[str, Any]], central: float) -> list[dict[str, 
             "disagreement": float(a["disagreement_tail_mean_mean"]),
             "seeds": int(a["jobs"]),
         })  # fmt: skip
-    return sorted(out, key=lambda r: (r["design"], r["radius"], r["rounds"]))
+    return sorted(out, key=lambda r: (r["design"], r["graph"], r["rounds"]))
 
 
 def within_budget(row: dict[str, Any]) -> bool:
@@ -104,15 +115,15 @@ def within_budget(row: dict[str, Any]) -> bool:
 
 
 def frontier_figure(table: list[dict[str, Any]], central: float, out: Path) -> list[Path]:
-    """Ratio against bytes, one marker per design, one colour per radius, the rounds
+    """Ratio against bytes, one marker per design, one colour per graph, the rounds
     written beside each point, the Pareto front and the goal's ratio.
     """
     designs = sorted({r["design"] for r in table})
-    radii = sorted({r["radius"] for r in table})
+    radii = sorted({r["graph"] for r in table})
     markers = "osD^v<>p*h"
     fig, ax = plt.subplots(figsize=(9.5, 5.6), constrained_layout=True)
     for r in table:
-        colour = f"C{radii.index(r['radius'])}"
+        colour = f"C{radii.index(r['graph'])}"
         marker = markers[designs.index(r["design"]) % len(markers)]
         face = colour if within_budget(r) else "none"
         ax.scatter(r["bytes"], r["ratio"], marker=marker, s=60, edgecolors=colour,
@@ -130,13 +141,16 @@ def frontier_figure(table: list[dict[str, Any]], central: float, out: Path) -> l
     for d in designs:
         ax.scatter([], [], marker=markers[designs.index(d) % len(markers)], color="0.3", label=d)
     for r_ in radii:
-        ax.scatter([], [], marker="s", color=f"C{radii.index(r_)}", label=f"r = {r_}")
+        ax.scatter([], [], marker="s", color=f"C{radii.index(r_)}", label=r_)
     ax.set_xscale("log")
     ax.set_xlabel("bytes per robot per step (tail mean)")
     ax.set_ylabel(r"swarm_l2 / centralised loop's (tail means)")
+    ax.set_yscale("log")
     ax.set_title(
-        f"decentralised designs (filled: <= {MESSAGES_BUDGET:.0f} messages per robot per step "
-        f"of <= {MESSAGE_BYTES_BUDGET:.0f} B); centralised swarm_l2 = {central:.3g} 1/length"
+        f"decentralised designs against what they send (centralised swarm_l2 = {central:.3g} "
+        f"1/length)\nfilled: within the budget of {MESSAGES_BUDGET:.0f} messages per robot per "
+        f"step of at most {MESSAGE_BYTES_BUDGET:.0f} B each",
+        fontsize=10,
     )
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, loc="upper right")
@@ -156,7 +170,8 @@ def draw_frontier(study: Any) -> list[Path]:
     print(f"centralised loop: swarm_l2 tail mean {central:.4g} 1/length")
     for r in table:
         print(
-            f"{r['design']}, r = {r['radius']}, rounds {r['rounds']}: swarm_l2 "
+            f"{r['design']}, {r['graph']}, band_limit {r['band_limit']}, rounds {r['rounds']}: "
+            f"swarm_l2 "
             f"{r['swarm_l2']:.3g} 1/length = {r['ratio']:.3g} x centralised, "
             f"{r['bytes'] / 1e3:.4g} kB per robot per step in {r['messages']:.4g} messages "
             f"(largest {r['message_bytes']:.0f} B), central_gap_l2 {r['central_gap']:.3g} "

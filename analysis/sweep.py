@@ -760,10 +760,14 @@ def _convergence(study: Study) -> list[Path]:
 
 @dataclass(frozen=True)
 class Figure:
-    """A figure of a study: how to draw it, and the primary keys it draws against."""
+    """A figure of a study: how to draw it, the primary keys it draws against, and keys
+    it tells points apart by beside them (``also``: a point may set them off their
+    defaults, e.g. a graph of the ``k`` nearest in a study of radii).
+    """
 
     draw: Callable[[Study], list[Path]]
     needs: tuple[str, ...] = ()
+    also: tuple[str, ...] = ()
 
 
 def _law_figure(name: str, module: str = "laws") -> Callable[[Study], list[Path]]:
@@ -805,7 +809,11 @@ FIGURES: dict[str, Figure] = {
     "debias_n": Figure(_debias, ("agents.n", "kde.debias")),
     "agents_n": Figure(_agents, ("agents.n",)),
     "distributed_r": Figure(_network, ("estimator.radius",)),
-    "distributed_frontier": Figure(_law_figure("draw_frontier", "frontier"), FRONTIER_KEYS),
+    "distributed_frontier": Figure(
+        _law_figure("draw_frontier", "frontier"),
+        FRONTIER_KEYS,
+        ("estimator.k_nearest", "estimator.band_limit"),
+    ),
     "conv_grid_agents": Figure(_grid, ("grid.n",)),
     "convergence": Figure(_convergence),
 }
@@ -970,7 +978,7 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    extra = mixed(rows, primary)
+    extra = mixed(rows, [*primary, *figure.also])
     if extra:
         print(
             f"error: {args.sweep_dir} holds more than one sweep: besides "

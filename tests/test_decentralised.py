@@ -106,7 +106,7 @@ def test_centralised_runs_log_the_network_metrics_as_null(tmp_path, compose, smo
     [
         (["plant=meanfield"], "plant"),
         (["estimator.radius=null"], "estimator.radius"),
-        (["estimator.k_nearest=5"], "estimator.radius"),
+        (["estimator.radius=null", "estimator.k_nearest=-1"], "estimator.k_nearest"),
         (["estimator.radius=-0.1"], "estimator.radius"),
         (["estimator.robot=600"], "estimator.robot"),
         (["estimator.gradient=filter"], "estimator.gradient"),

@@ -62,6 +62,23 @@ def test_knn_graph_is_the_symmetrised_brute_force_one(rng):
     np.testing.assert_array_equal(communication_graph(pos, k_nearest=4).toarray() != 0, expected)
 
 
+def test_knn_within_a_radius_is_the_brute_force_one(rng):
+    """Each robot's k nearest among those within r, then symmetrised."""
+    pos = rng.random((2, 150))
+    dist = cdist(pos.T, pos.T)
+    np.fill_diagonal(dist, np.inf)
+    expected = np.zeros((150, 150), dtype=bool)
+    for i in range(150):
+        inside = np.flatnonzero(dist[i] <= 0.08)
+        expected[i, inside[np.argsort(dist[i, inside])][:5]] = True
+    expected |= expected.T
+    adj = communication_graph(pos, radius=0.08, k_nearest=5)
+    np.testing.assert_array_equal(adj.toarray() != 0, expected)
+    # some robots have fewer than 5 within r (the radius binds), some more (k binds)
+    within = (dist <= 0.08).sum(axis=1)
+    assert within.min() < 5 < within.max()
+
+
 def test_ring_spectrum_components_and_messages():
     n = 24
     adj = communication_graph(_ring(n), k_nearest=2)

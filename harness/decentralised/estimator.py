@@ -104,8 +104,9 @@ class RobotEstimators:
         n_robots: ``N`` (each robot knows it; it sets ``k``, ``k_g``).
         bandwidth: KDE bandwidth ``h`` (length).
         settings: Filter settings.
-        radius: Communication radius (length), or
-        k_nearest: number of nearest neighbours (exactly one of the two).
+        radius: Communication radius (length), and/or
+        k_nearest: number of nearest neighbours (with both: the ``k`` nearest within
+            the radius; :func:`~harness.decentralised.graph.communication_graph`).
         rounds: Consensus rounds per step.
         gain: Consensus gain factor in ``(0, 1]``.
         initial_rounds: Consensus rounds at ``t = 0`` before the first estimate
@@ -138,8 +139,8 @@ class RobotEstimators:
         band_limit: float = 2.5,
         command_rounds: int = 1,
     ) -> None:
-        if (radius is None) == (k_nearest is None):
-            raise ValueError("give exactly one of radius and k_nearest")
+        if radius is None and k_nearest is None:
+            raise ValueError("give radius, k_nearest or both")
         if share not in SHARES or messages not in MESSAGES:
             raise ValueError(f"share must be one of {SHARES} and messages one of {MESSAGES}")
         self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
@@ -274,7 +275,8 @@ class DistributedEstimator:
         process_noise, r_scale, r_floor, initial_variance: As
             :class:`harness.filters.common.FilterSettings` (``filter.*``).
         radius: Communication radius (length), or None with ``k_nearest``.
-        k_nearest: Neighbours per robot (symmetrised), or None with ``radius``.
+        k_nearest: Neighbours per robot (symmetrised), or None with ``radius``; with
+            both, each robot talks to its ``k_nearest`` nearest within ``radius``.
         rounds: Consensus rounds per step (``>= 1``).
         gain: Consensus gain factor in ``(0, 1]``: ``eps = gain / (1 + d_max)``.
         gradient: ``grid`` or ``fourth_order`` (see above).
@@ -339,8 +341,8 @@ class DistributedEstimator:
         # the robots' filters keep every grid mode (no band limit)
         checked = FilterSettings.checked(process_noise, r_scale, r_floor, initial_variance)
         settings = dataclasses.replace(checked, band_limit=np.inf)
-        require((radius is None) != (k_nearest is None), "radius", radius,
-                "a length >= 0, or null with k_nearest set (exactly one of the two)")  # fmt: skip
+        require(radius is not None or k_nearest is not None, "radius", radius,
+                "a length >= 0, or null with k_nearest set")  # fmt: skip
         if radius is not None:
             radius = number("radius", radius, 0.0)
         if k_nearest is not None:

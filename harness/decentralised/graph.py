@@ -172,18 +172,22 @@ def communication_graph(
         positions: Robot positions ``(2, N)`` (length).
         radius: Neighbours within this distance (length), inclusive.
         k_nearest: Or: each robot links to its ``k`` nearest, then symmetrised (``i ~ j``
-            if either is among the other's ``k`` nearest). Exactly one of the two.
+            if either is among the other's ``k`` nearest). With ``radius`` as well: its
+            ``k`` nearest among those within ``radius`` (a robot that can hear everyone
+            within ``radius`` and talks to its ``k`` nearest), then symmetrised. At
+            least one of the two.
 
     Returns:
         ``(N, N)`` CSR matrix with sorted indices and float entries 1.
     """
-    if (radius is None) == (k_nearest is None):
-        raise ValueError("give exactly one of radius and k_nearest")
+    if radius is None and k_nearest is None:
+        raise ValueError("give radius, k_nearest or both")
+    if radius is not None and not radius >= 0:
+        raise ValueError(f"radius must be >= 0, got {radius}")
     pts = np.asarray(positions, dtype=float)
     n = pts.shape[1]
-    if radius is not None:
-        if not radius >= 0:
-            raise ValueError(f"radius must be >= 0, got {radius}")
+    if k_nearest is None:
+        assert radius is not None
         if n == 0:
             return sp.csr_matrix((0, 0))
         indptr, indices = _radius_neighbours(
@@ -197,9 +201,12 @@ def communication_graph(
         if k == 0:
             rows = cols = np.empty(0, dtype=np.int64)
         else:
-            _, idx = cKDTree(pts.T).query(pts.T, k + 1)
+            dist, idx = cKDTree(pts.T).query(pts.T, k + 1)
             rows = np.repeat(np.arange(n, dtype=np.int64), k)
             cols = idx[:, 1:].ravel().astype(np.int64)  # the first is the robot itself
+            if radius is not None:  # only those within the radius (inclusive)
+                near = dist[:, 1:].ravel() <= radius
+                rows, cols = rows[near], cols[near]
         indptr, indices = _symmetric_csr(n, rows, cols)
     return canonical_csr(indptr, indices, np.ones(indices.size), n)
 
