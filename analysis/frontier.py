@@ -72,6 +72,22 @@ def centralised_swarm(sweep_dir: Path, tail: float) -> float:
     return float(np.mean(swarm[last])) if last.any() else math.nan
 
 
+def knn_reach(path: Path, k: int) -> float:
+    """The largest distance from a robot to its ``k``-th nearest over the logged frames
+    of ``/swarm/positions`` (length): the radius a graph of the ``k`` nearest needed.
+    """
+    from scipy.spatial import cKDTree
+
+    run = load_run(path, topics={"/swarm/positions"})
+    reach = 0.0
+    for frame in run.positions:
+        pts = np.asarray(frame, dtype=float)
+        pts = pts.T if pts.shape[0] == 2 else pts
+        dist, _ = cKDTree(pts).query(pts, k + 1)
+        reach = max(reach, float(dist[:, k].max()))
+    return reach
+
+
 def pareto(xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
     """Indices of the points that no other point beats on both axes (lower is better),
     sorted by ``x``.
@@ -168,6 +184,15 @@ def draw_frontier(study: Any) -> list[Path]:
         )
     table = frontier_rows(study.usable, central)
     print(f"centralised loop: swarm_l2 tail mean {central:.4g} 1/length")
+    assert sweep_dir is not None
+    for row in study.usable:
+        k = row.get("cfg:estimator.k_nearest")
+        if k not in (None, "", "None"):
+            reach = knn_reach(sweep_dir / row["dir"] / "run.mcap", int(float(k)))
+            print(
+                f"{row['dir']}: every robot's {int(float(k))} nearest within {reach:.4g} "
+                "length at every logged frame"
+            )
     for r in table:
         print(
             f"{r['design']}, {r['graph']}, band_limit {r['band_limit']}, rounds {r['rounds']}: "

@@ -383,17 +383,31 @@ class DistributedEstimator:
 
     @classmethod
     def memory_estimate(cls, grid: Grid, robots: int = 1, **params: object) -> MemoryEstimate:
-        """Per robot: consensus state and buffer, kernel factors, the filters' states
-        and variances (with ``consensus: pi`` six more fields: the integral state and a
-        round's temporaries, with ``share: command`` two), about ``8 (4 + 3 + (6 if pi)
-        + (2 if command)) M`` bytes, plus the grid arrays; the graph is ``O(N deg)``.
+        """Per robot, fields of ``M`` float64 values: consensus state and buffer, kernel
+        factors, the filters' states and variances (7), a step's temporaries (the
+        kernels' change, the observations, the filters' and the law's work arrays: 4),
+        with ``consensus: pi`` six more (the integral state and a round's temporaries),
+        with ``share: command`` two more; and the graph: four sparse copies (the
+        neighbour lists, the adjacency, ``W``, their construction) of 12 bytes per edge
+        end, with ``deg = min(N - 1, 2.5 N pi r^2)`` neighbours per robot for a radius
+        ``r`` (2.5: the swarm gathers, at the paper's start box at twice the uniform
+        density) and ``deg = 2 k`` for the ``k`` nearest. Calibrated on the peak
+        resident memory at N = 16384, r = 0.1 (``python -m benchmarks.distributed
+        --app`` checks every design against it).
         """
         n = robots if isinstance(robots, int) and robots > 0 else 1
-        fields = 7
+        fields = 11
         fields += 6 if params.get("consensus") == "pi" else 0
         fields += 2 if params.get("share") == "command" else 0
         per_robot = 8 * fields * grid.size + 8 * (grid.nx + grid.ny) * 4
-        return MemoryEstimate(default_memory(grid).nbytes + n * per_robot, "robots")
+        radius, k = params.get("radius"), params.get("k_nearest")
+        degree = float(n - 1)
+        if isinstance(k, int) and k >= 0:
+            degree = min(degree, 2.0 * k)
+        elif isinstance(radius, (int, float)) and radius >= 0:
+            degree = min(degree, 2.5 * n * np.pi * float(radius) ** 2)
+        graph = 4 * 12 * n * degree
+        return MemoryEstimate(default_memory(grid).nbytes + n * per_robot + int(graph), "robots")
 
     def _estimate(self, est: DistributedEstimate, p_central: np.ndarray) -> Estimate:
         g = self.grid
