@@ -29,7 +29,7 @@ import numpy as np
 
 from analysis.load import load_run
 from analysis.plotting import save_figure
-from analysis.sweep import points
+from analysis.sweep import points, value
 
 MESSAGES_BUDGET = 100.0
 """Messages per robot per step the goal allows."""
@@ -59,10 +59,13 @@ def graph_name(point: dict[str, Any]) -> str:
 
 def centralised_swarm(sweep_dir: Path, tail: float) -> float:
     """The tail mean of ``swarm_l2`` of the centralised run beside ``sweep_dir``
-    (``<sweep_dir>_centralised/run.mcap``), over the last ``tail`` of its time; NaN when
-    it is missing.
+    (``<sweep_dir>_centralised/run.mcap``, else the study's own,
+    ``distributed_frontier_centralised/run.mcap`` in the same directory), over the last
+    ``tail`` of its time; NaN when neither is there.
     """
     path = sweep_dir.parent / f"{sweep_dir.name}_centralised" / "run.mcap"
+    if not path.is_file():
+        path = sweep_dir.parent / "distributed_frontier_centralised" / "run.mcap"
     if not path.is_file():
         return math.nan
     run = load_run(path)
@@ -108,6 +111,7 @@ def frontier_rows(rows: list[dict[str, Any]], central: float) -> list[dict[str, 
     """
     out = []
     for a in points(rows):
+        a = {**_constants(rows), **a}  # the keys no job varies are the same for every point
         out.append({
             "design": design_name(a),
             "graph": graph_name(a),
@@ -123,6 +127,14 @@ def frontier_rows(rows: list[dict[str, Any]], central: float) -> list[dict[str, 
             "seeds": int(a["jobs"]),
         })  # fmt: skip
     return sorted(out, key=lambda r: (r["design"], r["graph"], r["rounds"]))
+
+
+def _constants(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The estimator keys of the first job (their values where no job varies them)."""
+    prefix = "cfg:"
+    keys = (*DESIGN_KEYS, "estimator.radius", "estimator.k_nearest", "estimator.band_limit",
+            "estimator.rounds")  # fmt: skip
+    return {k: value(rows[0], k) for k in keys if f"{prefix}{k}" in rows[0]} if rows else {}
 
 
 def within_budget(row: dict[str, Any]) -> bool:
@@ -190,8 +202,8 @@ def draw_frontier(study: Any) -> list[Path]:
         if k not in (None, "", "None"):
             reach = knn_reach(sweep_dir / row["dir"] / "run.mcap", int(float(k)))
             print(
-                f"{row['dir']}: every robot's {int(float(k))} nearest within {reach:.4g} "
-                "length at every logged frame"
+                f"{row['dir']}: a robot's {int(float(k))}th nearest at most {reach:.4g} "
+                "length away at the logged frames"
             )
     for r in table:
         print(

@@ -136,15 +136,20 @@ def test_band_messages_reconstruct_the_band_projected_grid_consensus(rng, form):
         assert on_band.z.shape == (n, band.size)
 
 
+SLOW = pytest.mark.slow
 SMALL = ("grid.n=16", "agents.n=300", "sim.dt=0.01", "log.progress=off")
 
 
 @pytest.mark.parametrize(
     "design",
     [
-        ["estimator.consensus=pi", "estimator.rounds=70", "estimator.initial_rounds=70"],
-        ["estimator.messages=band", "estimator.band_limit=1.5"],
-        ["estimator.share=command", "estimator.command_rounds=2"],
+        pytest.param(
+            ["estimator.consensus=pi", "estimator.rounds=70", "estimator.initial_rounds=70"],
+            marks=SLOW,
+        ),
+        pytest.param(["estimator.messages=band", "estimator.band_limit=1.5"], marks=SLOW),
+        pytest.param(["estimator.share=command", "estimator.command_rounds=2"], marks=SLOW),
+        # all three together (in make test; each alone with make test-slow)
         ["estimator.consensus=pi", "estimator.rounds=70", "estimator.initial_rounds=70",
          "estimator.messages=band", "estimator.band_limit=1.5", "estimator.share=command"],
     ],
