@@ -47,9 +47,7 @@ BAD_VALUES = {
 }
 
 
-@settings(max_examples=200, deadline=None, suppress_health_check=list(HealthCheck))
-@given(data=st.data())
-def test_bad_configs_are_rejected_with_the_key_named(compose, data, refusal):
+def _bad_config_is_rejected_with_the_key_named(data, refusal) -> None:
     name = data.draw(st.sampled_from(sorted(BAD_VALUES)))
     value = data.draw(BAD_VALUES[name])
     key = name.strip()
@@ -58,6 +56,20 @@ def test_bad_configs_are_rejected_with_the_key_named(compose, data, refusal):
     assert message.startswith("invalid config:")
     assert key in message or key.split(".")[0] + "=" in message, message
     assert "\n" not in message
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_bad_configs_are_rejected_with_the_key_named(compose, data, refusal):
+    _bad_config_is_rejected_with_the_key_named(data, refusal)
+
+
+@pytest.mark.slow
+@settings(max_examples=400, deadline=None, suppress_health_check=list(HealthCheck))
+@given(data=st.data())
+def test_many_bad_configs_are_rejected_with_the_key_named(compose, data, refusal):
+    """The test above with more examples (make test-slow)."""
+    _bad_config_is_rejected_with_the_key_named(data, refusal)
 
 
 def test_injected_error_size_is_checked_by_its_component(compose, refusal):
