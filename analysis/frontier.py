@@ -191,7 +191,8 @@ def draw_frontier(study: Any) -> list[Path]:
     central = centralised_swarm(sweep_dir, study.tail) if sweep_dir is not None else math.nan
     if not math.isfinite(central):
         raise SystemExit(
-            f"error: no centralised run at {sweep_dir}_centralised/run.mcap: run "
+            f"error: no centralised run at {sweep_dir}_centralised/run.mcap nor "
+            f"{sweep_dir.parent}/distributed_frontier_centralised/run.mcap: run "
             "python -m experiments.closed_loop +experiment=distributed_frontier_centralised"
         )
     table = frontier_rows(study.usable, central)

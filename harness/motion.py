@@ -28,7 +28,8 @@ With robots the observer also reports what the plant says of the step just taken
 In the decentralised loop (``estimator=distributed``) it reports the law's disagreement,
 ``command_disagreement`` = ``(1/N) sum_k |v_k - v_ref,k|`` (length / s): robot ``k``'s
 own command against the command the law gives at ``X_k`` from the centralised
-reference's estimate (the grid gradient of ``p_hat_central``), :func:`command_disagreement`;
+reference's estimate (with the robots' own central differences of ``p_hat_central``),
+:func:`command_disagreement`;
 ``null`` in every other loop.
 
 :mod:`analysis.sweep` integrates ``effort`` over time (length^2 / s) and averages

@@ -7,6 +7,7 @@ the centralised loop on a complete graph, and the communication counts.
 import numpy as np
 import pytest
 import scipy.fft as sfft
+import scipy.sparse as sp
 
 from harness.build import build
 from harness.decentralised import DynamicAverageConsensus, communication_graph, consensus_weights
@@ -90,6 +91,56 @@ def test_pi_form_is_stable_on_every_eigenvalue_the_gain_rule_admits():
             a, b = k_p * mu, k_i * mu
             m = np.array([[1 - a, -b], [b * (1 - a), 1 - b * b]])
             assert np.abs(np.linalg.eigvals(m)).max() < 1.0, (k_i, mu)
+
+
+@pytest.mark.parametrize("k_i", [0.3, 0.5, 0.9])
+def test_one_pi_round_acts_on_a_laplacian_mode_as_the_gain_rule_says(k_i):
+    """On the complete bipartite graph K_{n,n} the alternating vector is the Laplacian's
+    eigenvector of eigenvalue 2 n, so ``mu = eps 2 n = 2 n / (1 + n)`` (near 2, where the
+    Jury condition binds). One round from ``(z, w) = (e, 0)`` gives ``z' = (1 - k_P mu)
+    e`` and ``w' = k_I mu z'`` with ``k_P = 1 - k_I^2``: the compiled round against the
+    formula, so a wrong gain rule fails here."""
+    n, g = 6, Grid(5, 4)
+    adj = sp.csr_matrix(np.block([[np.zeros((n, n)), np.ones((n, n))],
+                                  [np.ones((n, n)), np.zeros((n, n))]]))  # fmt: skip
+    adj.sort_indices()
+    w, eps = consensus_weights(adj)
+    mu = eps * 2 * n
+    assert mu == pytest.approx(2 * n / (1 + n))
+    pos = np.random.default_rng(0).random((2, 2 * n))
+    dac = DynamicAverageConsensus(g, H, rounds=1, form="pi", integral_gain=k_i)
+    dac.initialize(pos, w)
+    e = np.repeat(np.r_[np.ones(n), -np.ones(n)][:, None], g.size, axis=1)
+    dac.z, dac.w = e.copy(), np.zeros_like(e)
+    dac._mix(w, 1, pos, np.zeros_like(e))
+    k_p = 1 - k_i**2
+    np.testing.assert_allclose(dac.z, (1 - k_p * mu) * e, atol=1e-12)
+    np.testing.assert_allclose(dac.w, k_i * mu * (1 - k_p * mu) * e, atol=1e-12)
+
+
+def test_agreement_is_w_to_the_rounds_on_grids_and_on_the_band_part(rng):
+    """Eq. AGREE on a ring: ``W^m p_hat`` with grid messages; with band messages the part
+    outside the band stays each robot's own: ``p - Pi p + W^m Pi p`` (dense reference,
+    full-transform projector)."""
+    g = Grid.square(30)
+    pos = _ring(12)
+    settings = FilterSettings(band_limit=np.inf)
+    p_hat = rng.random((12, g.size))
+    for messages in ("grid", "band"):
+        est = RobotEstimators(g, 0.01, 12, H, settings, k_nearest=2, share="command",
+                              command_rounds=3, messages=messages, band_limit=2.0)  # fmt: skip
+        est._graph(pos)
+        wm = np.linalg.matrix_power(est._w.toarray(), 3)
+        agreed = est.agree(p_hat)
+        if messages == "grid":
+            expected = wm @ p_hat
+        else:
+            mask = est.band.band.mask
+            coef = sfft.dctn(p_hat.reshape(12, 30, 30), type=2, norm="ortho", axes=(1, 2)) * mask
+            inside = sfft.idctn(coef, type=2, norm="ortho", axes=(1, 2)).reshape(12, -1)
+            expected = p_hat - inside + wm @ inside
+        np.testing.assert_allclose(agreed, expected, atol=1e-12)
+    assert not np.allclose(agreed, p_hat)  # the agreement did something
 
 
 def test_band_coefficients_of_the_kernels_are_their_transforms(rng):

@@ -468,7 +468,8 @@ class DistributedEstimator:
     def _kde(self) -> tuple[np.ndarray, np.ndarray]:
         """The reference's observation: the exact KDE the robots' kernels make (band
         limited, ``Pi p``, with band messages: what the robots can agree on), and its
-        analytic gradient.
+        analytic gradient (not band limited: the reference's gradient filter, whose
+        estimate neither the robots nor the metrics use, sees the whole gradient).
         """
         p, grad = self.network.consensus.kde()
         band = self.network.band
