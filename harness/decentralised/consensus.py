@@ -412,16 +412,22 @@ class DynamicAverageConsensus:
         return 8 * self.columns * (2 if self.form == "pi" else 1)
 
     def _increment(
-        self, factors: tuple[np.ndarray, ...], old: tuple[np.ndarray, ...] | None
+        self,
+        factors: tuple[np.ndarray, ...],
+        old: tuple[np.ndarray, ...] | None,
+        into: np.ndarray | None = None,
     ) -> np.ndarray:
-        """``phi(t + 1) - phi(t)`` (``phi(0)`` when ``old`` is None), ``(N, C)``."""
+        """``phi(t + 1) - phi(t)`` (``phi(0)`` when ``old`` is None), ``(N, C)``; on grid
+        fields added in place to ``into`` when given (no ``N C`` temporary), and ``into``
+        returned.
+        """
         kx, _, ky, _ = factors
         if self.band is not None:  # the coefficients' change, C_y ky_i (C_x kx_i)^T
             coef = self.band.kernels(kx, ky)
             delta = coef if self._coef is None or old is None else coef - self._coef
             self._coef = coef
             return delta
-        delta = np.zeros((kx.shape[0], self.columns))
+        delta = np.zeros((kx.shape[0], self.columns)) if into is None else into
         if old is None:  # the old kernels' values are unused (sign 0)
             _add_kernel_increment(delta, ky, kx, ky, kx, 0.0)
         else:
@@ -451,21 +457,25 @@ class DynamicAverageConsensus:
 
         return mix
 
-    def _mix(self, w: sp.csr_matrix, rounds: int, positions: np.ndarray, delta: np.ndarray) -> None:
+    def _mix(
+        self, w: sp.csr_matrix, rounds: int, positions: np.ndarray, delta: np.ndarray | None
+    ) -> None:
         """Add the input's change ``delta`` and run ``rounds`` rounds: eq. ``DAC`` (``z <-
         W^m (z + delta)``), or eq. ``PI`` with ``delta / m`` added before each round (so
         that every round of a step is the same map under a ramp, and its fixed point
         agrees after every round; the whole change is in ``z`` by the step's end).
+        ``delta`` None: the first-order form's change is in ``z`` already.
         """
         assert self.z is not None and self._buf is not None
         mix = self._mixer(w, positions)
         if self.form == "first_order":
-            self.z += delta
+            if delta is not None:
+                self.z += delta
             for _ in range(rounds):
                 mix(self.z, self._buf)
                 self.z, self._buf = self._buf, self.z
             return
-        assert self.w is not None
+        assert self.w is not None and delta is not None
         if rounds == 0:
             self.z += delta
             return
@@ -513,7 +523,11 @@ class DynamicAverageConsensus:
         """Add the kernels' change, then ``m`` rounds; returns the observations."""
         assert self.z is not None and self._factors is not None, "call initialize first"
         factors = kernel_factors(self.grid, positions, self.bandwidth)
-        delta = self._increment(factors, self._factors)
+        if self.form == "first_order" and self.band is None:  # straight into z
+            self._increment(factors, self._factors, into=self.z)
+            delta = None
+        else:
+            delta = self._increment(factors, self._factors)
         self._factors = factors
         self._mix(w, self.rounds, positions, delta)
         return self.observation()
