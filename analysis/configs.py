@@ -133,7 +133,7 @@ def flatten(cfg: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def component(flat: dict[str, Any], group: str) -> str:
     """Short name of a group's component: the class name of its ``_target_``
-    (``control._target_ = harness.control.HeatControl`` gives ``HeatControl``).
+    (``control._target_ = harness.control.heat.HeatControl`` gives ``HeatControl``).
     """
     target = flat.get(f"{group}._target_", "")
     return str(target).rsplit(".", 1)[-1] if target else ""

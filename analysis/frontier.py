@@ -1,7 +1,7 @@
 """The decentralised loop's frontier: where the robots are against what they send.
 
 Study ``distributed_frontier`` (``conf/experiment/distributed_frontier.yaml``): the
-designs of :mod:`harness.decentralised` (``+design=...``: consensus form, what the robots
+designs of :mod:`harness.estimators.distributed` (``+design=...``: consensus form, what the robots
 agree on, what a message carries) against the communication radius and the consensus
 rounds per step, and (``make sweep-distributed_frontier`` adds them to the same sweep
 directory) two designs on the graph of each robot's 6 nearest with ten rounds per step

@@ -4,7 +4,7 @@
 each field topic as a :class:`FieldSeries` (times and values), the robot positions
 (and, for robots with a heading, their poses ``(N, 3)``: x, y in length, heading in
 rad), and the metadata records (``config``, ``provenance``, ``status``). Topic names and
-units are those of the log contract in ``harness/mcap_log.py``.
+units are those of the log contract in ``harness/observers/log.py``.
 
 The same run as xarray objects (built from the numpy arrays, so the values are the
 same numbers): :meth:`RunLog.field_xarray` (one field topic, dims ``t``, ``y``, ``x``
@@ -40,7 +40,7 @@ from analysis.output import atomic_path
 if TYPE_CHECKING:
     import xarray as xr
 
-# units of the field topics (log contract, harness/mcap_log.py) and of the metrics (docs/units.md)
+# units of the field topics (log contract, harness/observers/log.py) and of the metrics (docs/units.md)
 FIELD_UNITS = {
     "/fields/p_target": "1/length^2",
     "/fields/p_true": "1/length^2",

@@ -27,6 +27,9 @@ from analysis.output import write_text
 from analysis.plotting import save_figure
 
 PLANT_NAMES = {
+    "harness.plants.agents.Agents": "ideal integrators",
+    "harness.plants.unicycles.Unicycles": "unicycles",
+    "harness.plants.double_integrators.DoubleIntegrators": "double integrators",
     "harness.plants.Agents": "ideal integrators",
     "harness.plants.Unicycles": "unicycles",
     "harness.plants.DoubleIntegrators": "double integrators",

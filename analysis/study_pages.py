@@ -217,7 +217,8 @@ class Points:
         """``cell`` of ``key`` as a page shows it (option names for classes)."""
         group = "law" if key == "law" else key.removesuffix("._target_")
         if key == "law" or key.endswith("._target_"):
-            return self.names.get(group, {}).get(cell, cell)
+            table = self.names.get(group, {})
+            return table.get(cell, table.get(cell.rsplit(".", 1)[-1], cell))
         return cell
 
     def column(self, stat: str) -> str:

@@ -827,7 +827,7 @@ DEFAULT_TAIL = 0.25
 
 DECLARATION_BLOCK = "analysis"
 """The config block of the declaration (accepted by the harness, which logs it:
-:data:`harness.checks.LOGGED_BLOCKS`)."""
+:data:`harness.runs.checks.LOGGED_BLOCKS`)."""
 
 DECLARATION_KEYS = ("figure", "primary", "tail")
 """The keys of a declaration."""

@@ -7,7 +7,7 @@
 
 Runs the paper's closed loop (agents, KDE, both filters, paper's law; the composed
 ``closed_loop`` config with ``agents.n`` and ``sim.t_final`` overridden) through
-:func:`harness.run.run`, and for ``--law debiased`` the same with ``kde.debias=true``
+:func:`harness.runs.run.run`, and for ``--law debiased`` the same with ``kde.debias=true``
 (docs/debias.md): the feedback term compares the estimates with the smoothed target
 ``K_h * p_*``, the sigma drift keeps ``p_*``. From the log, every 10 s it prints
 ``swarm_l2`` and ``swarm_w2`` with their ratios to the finite-N floor (mean of the
@@ -42,16 +42,12 @@ from threadpoolctl import threadpool_limits
 
 from analysis.load import load_run
 from harness.api import compose
-from harness.densities import DEFAULT_TARGET
+from harness.estimators.kde import KDE, kernel_1d
+from harness.estimators.smoothing import smoothed_density
 from harness.grid import Grid
-from harness.kde import KDE, kernel_1d
-from harness.run import run
-from harness.swarm_metrics import (
-    TargetMeasure,
-    smoothed_density,
-    swarm_l2,
-    swarm_w2,
-)
+from harness.observers.swarm_metrics import TargetMeasure, swarm_l2, swarm_w2
+from harness.runs.run import run
+from harness.targets.densities import DEFAULT_TARGET
 
 
 def run_one(

@@ -31,16 +31,16 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from benchmarks.report import record
-from harness.agents import Swarm
-from harness.control import PaperControl, paper_law
-from harness.decentralised import RobotEstimators, algebraic_connectivity
-from harness.decentralised.density import jacobi_sweeps, stencil_coefficients
-from harness.decentralised.graph import n_components
-from harness.densities import DEFAULT_TARGET, Box, Target
-from harness.filters.common import FilterSettings
+from harness.control.own_estimates import own_velocities
+from harness.control.paper import PaperControl, paper_law
+from harness.estimators.distributed.density import jacobi_sweeps, stencil_coefficients
+from harness.estimators.distributed.estimator import RobotEstimators
+from harness.estimators.distributed.graph import algebraic_connectivity, n_components
+from harness.estimators.filters.common import FilterSettings
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.robot_law import own_velocities
+from harness.plants.agents import Swarm
+from harness.targets.densities import DEFAULT_TARGET, Box, Target
 
 SIGMA, ALPHA, H, DT = 5e-5, 0.003, 0.04, 0.01
 TARGET_MS = 20.0
@@ -147,8 +147,8 @@ def app_loop(n_robots: int, radius: float, steps: int, design: str = "grid") -> 
     per-robot law), median over ``steps`` steps after two untimed ones.
     """
     from harness.api import compose as compose_config
-    from harness.build import build
     from harness.loop import ClosedLoop
+    from harness.runs.build import build
 
     cfg = compose_config(
         [
@@ -201,15 +201,15 @@ def bench_app(quick: bool) -> bool:
 def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> None:
     """Build the app's loop, take ``steps`` steps, print the peak resident memory against
     the estimate the harness prints and checks before a run
-    (:func:`harness.checks.check_memory`); run in a process of its own.
+    (:func:`harness.runs.checks.check_memory`); run in a process of its own.
     """
     import resource
 
     from harness.api import compose as compose_config
-    from harness.build import build
-    from harness.checks import check_memory
     from harness.grid import Grid as GridType
     from harness.loop import ClosedLoop
+    from harness.runs.build import build
+    from harness.runs.checks import check_memory
 
     # two rounds before the start: the memory does not depend on them, the time does
     overrides = ["estimator=distributed", f"agents.n={n_robots}", f"estimator.radius={radius}",

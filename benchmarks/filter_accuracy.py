@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from harness.filters.compare import compare_filters
+from harness.estimators.filters.compare import compare_filters
 
 
 def main() -> None:

@@ -21,9 +21,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from harness.api import compose as compose_config
-from harness.build import build
-from harness.filters.engines import LocalEngine
+from harness.estimators.filters.engines import LocalEngine
 from harness.loop import ClosedLoop
+from harness.runs.build import build
 
 
 def mean_gains(n: int, steps: int, seed: int, white: bool) -> tuple[float, float]:

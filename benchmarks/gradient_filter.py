@@ -5,21 +5,21 @@ options; about three minutes on a shared 2-core machine with the defaults).
 The setting is the one where the question is clean: a complete graph (``radius = 2``,
 ``eps = 1/N``, one consensus round is exact), where every robot's density estimate is
 the centralised density filter's on the exact KDE (tested to 1e-10,
-``tests/test_distributed.py``), so one :class:`harness.filters.local.LocalFilters`
+``tests/test_distributed.py``), so one :class:`harness.estimators.filters.local.LocalFilters`
 stands for every robot. The gradient a robot's law may use:
 
 * ``filter``: the centralised gradient filter's ``q_hat`` (on the complete graph, what a
   gradient filter per robot on the tracked analytic kernel gradient computes);
 * ``grid``: ``G p_hat``, ``estimator.gradient=grid``;
 * ``fourth_order``: ``G_4 p_hat``, ``estimator.gradient=fourth_order``
-  (:func:`harness.robot_law.grid_gradient`).
+  (:func:`harness.grid.grid_gradient`).
 
 Paper scale (``h``, ``dt``, ``alpha``, ``sigma`` of :mod:`benchmarks.distributed`), ``n x
 n`` grid, robots from the box ``[0.15, 0.85]^2``, every filter without the band limit (as
 in ``estimator=distributed``), BLAS and numba on one thread.
 
 Closed loops: for each seed, one loop driven by each gradient from the same robots
-with the same noise; ``swarm_l2 = ||K_h mu_N - K_h p_*||`` (:mod:`harness.swarm_metrics`,
+with the same noise; ``swarm_l2 = ||K_h mu_N - K_h p_*||`` (:mod:`harness.observers.swarm_metrics`,
 exact KDE) at the end and its mean over the last fifth. Along the loop driven by the
 gradient filter, every 10 steps, for each gradient ``q``:
 
@@ -31,7 +31,7 @@ gradient filter, every 10 steps, for each gradient ``q``:
   limit, as the agents plant's ``p_true``).
 
 Cost: wall and process CPU time of the law at the robots with ``G`` and with ``G_4``
-(:func:`harness.robot_law.own_velocities`, the only part of the decentralised loop the
+(:func:`harness.control.own_estimates.own_velocities`, the only part of the decentralised loop the
 option changes), and of one step of the centralised filters, medians of ``--repeats``.
 """
 
@@ -46,17 +46,17 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from benchmarks.distributed import ALPHA, DT, SIGMA, H
-from harness.agents import Swarm, interpolate
-from harness.control import PaperControl, paper_law
-from harness.densities import DEFAULT_TARGET, Box, Target
-from harness.filters.common import FilterSettings, MeasurementModel
-from harness.filters.local import LocalFilters
+from harness.control.own_estimates import own_velocities
+from harness.control.paper import PaperControl, paper_law
+from harness.estimators.filters.common import FilterSettings, MeasurementModel
+from harness.estimators.filters.local import LocalFilters
+from harness.estimators.kde import KDE
+from harness.estimators.smoothing import Smoother, smoothed_density
 from harness.fokker_planck import FokkerPlanck
-from harness.grid import Grid
-from harness.kde import KDE
-from harness.robot_law import grid_gradient, own_velocities
-from harness.smoothing import Smoother
-from harness.swarm_metrics import smoothed_density
+from harness.grid import Grid, grid_gradient
+from harness.plants.agents import Swarm
+from harness.targets.densities import DEFAULT_TARGET, Box, Target
+from harness.velocity import interpolate
 
 SETTINGS = FilterSettings(band_limit=np.inf)  # estimator=distributed's filters and reference
 

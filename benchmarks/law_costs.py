@@ -14,8 +14,8 @@ with the swarm settled on its points and moved by 0.005 (the noise of a period).
 
 ``--solve`` times ot's assignment per size for two swarms, one crossing the domain
 (uniform on the paper's start box) and one settled (each robot within 0.005 of its
-point), and up to :data:`harness.assignment.EXACT_MAX` robots compares
-:func:`harness.assignment.large_assignment` with the exact assignment (cost ratio,
+point), and up to :data:`harness.control.assignment.EXACT_MAX` robots compares
+:func:`harness.control.assignment.large_assignment` with the exact assignment (cost ratio,
 certified or not, rounds).
 
 ``--loop`` steps the closed loop (the agents plant, the run's estimator, the law; no
@@ -33,7 +33,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from harness.api import compose
-from harness.assignment import (
+from harness.control.assignment import (
     EXACT_MAX,
     AssignmentControl,
     exact_assignment,
@@ -41,13 +41,13 @@ from harness.assignment import (
     quantise,
     transport_cost,
 )
-from harness.build import build
-from harness.control import PaperControl
-from harness.densities import DEFAULT_TARGET, Target
+from harness.control.guidance import FeedbackGuidance, MetropolisGuidance, target_masses
+from harness.control.paper import PaperControl
 from harness.grid import Grid
-from harness.guidance import FeedbackGuidance, MetropolisGuidance, target_masses
 from harness.loop import ClosedLoop
 from harness.records import ControlInput, Estimate
+from harness.runs.build import build
+from harness.targets.densities import DEFAULT_TARGET, Target
 
 
 def median_time(f, repeat: int) -> float:

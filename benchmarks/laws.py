@@ -36,8 +36,8 @@ def loop_rate(law: str, n_robots: int, seconds: float) -> tuple[float, float]:
     the same steps / mean step time).
     """
     from harness.api import compose
-    from harness.build import build
     from harness.loop import ClosedLoop
+    from harness.runs.build import build
 
     cfg = compose([f"control={law}", f"agents.n={n_robots}"])
     parts = build(cfg)

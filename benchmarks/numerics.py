@@ -36,12 +36,12 @@ from threadpoolctl import threadpool_limits
 
 from benchmarks.report import record
 from benchmarks.suite import closed_loop_rate, median_ms
-from harness.agents import Swarm
-from harness.control import paper_law
-from harness.densities import DEFAULT_TARGET, Box, Target
+from harness.control.paper import paper_law
+from harness.estimators.kde import KDE
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.kde import KDE
+from harness.plants.agents import Swarm
+from harness.targets.densities import DEFAULT_TARGET, Box, Target
 from harness.velocity import VelocityField
 
 

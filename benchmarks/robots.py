@@ -10,7 +10,7 @@ Two figures against their targets:
   what the robots weigh in a run;
 * the unicycles' step at N = 1e6 under the paper's start-time field: at most 30 ms,
   beside the ideal integrators' and, for each, the whole plant step
-  (:meth:`harness.plants.Agents.advance`, with the limit ``p_inf``).
+  (:meth:`harness.plants.agents.Agents.advance`, with the limit ``p_inf``).
 
 Times are medians over repeats of the mean over a block of steps, after a warm-up (the
 compiled loops are built then). One process, BLAS on one thread as in a run; run with
@@ -40,8 +40,8 @@ LARGE_STEP_TARGET_MS = 30.0
 def loop_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     """Median over ``repeats`` blocks of the mean closed-loop step time (ms)."""
     from harness.api import compose
-    from harness.build import build
     from harness.loop import ClosedLoop
+    from harness.runs.build import build
 
     parts = build(compose([f"plant={plant}", f"agents.n={n_robots}"]))
     loop = ClosedLoop(
@@ -63,8 +63,8 @@ def loop_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
 def _started(plant: str, n_robots: int):
     """A built loop at its start (exact estimates) and the command it computed there."""
     from harness.api import compose
-    from harness.build import build
     from harness.loop import ClosedLoop
+    from harness.runs.build import build
 
     parts = build(compose([f"plant={plant}", f"agents.n={n_robots}", "estimator=exact"]))
     rng = np.random.default_rng(0)
@@ -94,7 +94,7 @@ def _median_ms(step, steps: int, repeats: int) -> float:
 
 def robot_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     """Median over ``repeats`` blocks of the mean robots' step (ms) under the start's
-    field (:meth:`harness.plants.Agents.move_robots`: the command through the link and
+    field (:meth:`harness.plants.agents.Agents.move_robots`: the command through the link and
     the robots' move with the noise's draws; for the ideal integrators the compiled
     Euler-Maruyama step they take by default).
     """
@@ -108,7 +108,7 @@ def robot_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
 
 def plant_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     """Median over ``repeats`` blocks of the mean plant step (ms,
-    :meth:`harness.plants.Agents.advance`: the link, the robots, the limit ``p_inf``) under
+    :meth:`harness.plants.agents.Agents.advance`: the link, the robots, the limit ``p_inf``) under
     the start's command, held fixed."""
     parts, command, rng = _started(plant, n_robots)
     a = parts.model.matrix(command.field)

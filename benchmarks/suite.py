@@ -16,12 +16,12 @@ import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
 from benchmarks.report import record
-from harness.agents import Swarm
-from harness.control import paper_law
-from harness.densities import DEFAULT_TARGET, Box, Target
+from harness.control.paper import paper_law
+from harness.estimators.kde import KDE
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.kde import KDE
+from harness.plants.agents import Swarm
+from harness.targets.densities import DEFAULT_TARGET, Box, Target
 
 
 def median_ms(fn: Callable[[], object], repeats: int, warmup: int = 2) -> float:
@@ -103,8 +103,8 @@ def closed_loop_rate(n: int, engine: str, steps: int) -> float:
     the inverse of the median wall time of a step over ``steps`` steps after the first
     (the median: a step that the host delays does not move it)."""
     from harness.api import compose
-    from harness.build import build
     from harness.loop import ClosedLoop
+    from harness.runs.build import build
 
     cfg = compose([f"grid.n={n}", f"filter.engine={engine}"])
     parts = build(cfg)
@@ -172,7 +172,7 @@ def bench_sweeps() -> bool:
     met = record("ratio two jobs / one job", two / one, "x", 1.15, "<=")
     # logging share of a run's wall time, default rates
     from harness.api import compose
-    from harness.run import run
+    from harness.runs.run import run
 
     cfg = compose(["sim.t_final=20", "log.progress=off"])
     with tempfile.TemporaryDirectory() as tmp:

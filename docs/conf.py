@@ -91,8 +91,8 @@ nitpick_ignore_regex = [
 nitpick_ignore = [
     # attributes set in __init__ without a docstring of their own, in files others are
     # editing: remove an entry once the attribute has its docstring
-    ("py:attr", "port"),  # harness/live.py, LiveServer.port
-    ("py:attr", "gradient"),  # harness/decentralised/filters.py, RobotFilters.gradient
+    ("py:attr", "port"),  # harness/observers/live.py, LiveServer.port
+    ("py:attr", "gradient"),  # harness/estimators/distributed/filters.py, RobotFilters.gradient
 ]
 
 highlight_language = "none"  # docstrings' literal blocks are formulas, not code
@@ -277,7 +277,7 @@ def _canonical(path: str) -> str | None:
 def resolve_short_name(app: Any, env: Any, node: Any, contnode: Any) -> Any:
     """Resolve ``node``'s Python reference when exactly one documented object fits it:
     a member of the current class or one of its bases; the definition of a name that
-    a module imports (``harness.decentralised.DistributedEstimator``); else the only
+    a module imports (``harness.estimators.distributed.estimator.DistributedEstimator``); else the only
     documented object whose full name ends with the target.
     """
     if node.get("refdomain") != "py":

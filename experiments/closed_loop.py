@@ -3,11 +3,11 @@
     python -m experiments.closed_loop [overrides]        # e.g. agents.n=4096 grid.n=64
     python -m experiments.closed_loop -m agents.n=256,1024,4096
 
-Writes ``run.mcap`` into the Hydra run (or job) directory; see ``harness/mcap_log.py``
+Writes ``run.mcap`` into the Hydra run (or job) directory; see ``harness/observers/log.py``
 for its contract and ``python -m analysis.figures RUN_DIR`` for the figures. A config
 value that is not allowed stops the app before anything is written, with one line
 naming the key, the value and what is allowed, and exit status 2 (the check runs in
-:class:`harness.jobs.CheckCallback`; in a multirun each job checks its own config).
+:class:`harness.runs.jobs.CheckCallback`; in a multirun each job checks its own config).
 Hydra's own flags (``--cfg job``, ``--info``, ``--help``, ``-cn``, ``-m``) work as usual.
 The configs are read from :data:`harness.api.CONFIG_DIR` (``conf/``, shipped inside the
 package), so the app runs from any directory, installed or not; ``harness.api`` composes
@@ -57,9 +57,9 @@ from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.api import CONFIG_DIR
-from harness.checks import ConfigError, describe
-from harness.jobs import checked, finish_sweep, run_job
-from harness.run import DiskFull, Terminated, run
+from harness.runs.checks import ConfigError, describe
+from harness.runs.jobs import checked, finish_sweep, run_job
+from harness.runs.run import DiskFull, Terminated, run
 
 
 @hydra.main(version_base="1.3", config_path=str(CONFIG_DIR), config_name="closed_loop")
@@ -141,7 +141,7 @@ if __name__ == "__main__":
     for sig in {signal.SIGTERM, signal.SIGHUP} - IGNORED:
         signal.signal(sig, stop_before_run)
     # A sweep interrupted (SIGINT, SIGTERM, SIGHUP) or whose launcher failed still
-    # writes its status table (harness.jobs.finish_sweep) and exits non-zero.
+    # writes its status table (harness.runs.jobs.finish_sweep) and exits non-zero.
     try:
         main()
     except (HydraException, OmegaConfBaseException) as err:

@@ -31,12 +31,12 @@ from omegaconf import DictConfig
 from threadpoolctl import ThreadpoolController
 
 from analysis.load import RunLog, load_run
-from harness.build import Experiment, build
 from harness.loop import ClosedLoop
-from harness.mcap_log import METRIC_KEYS
-from harness.observers import RunContext, Status
+from harness.observers.base import RunContext, Status
+from harness.observers.log import METRIC_KEYS
 from harness.records import StepRecord
-from harness.run import run as run_to_log
+from harness.runs.build import Experiment, build
+from harness.runs.run import run as run_to_log
 
 __all__ = [
     "CONFIG_DIR",
@@ -55,7 +55,7 @@ symbolic link to it in the source tree and a copy of it in an installed package.
 command line (:mod:`experiments.closed_loop`) reads its configs from here too."""
 
 Metrics = dict[str, float | None]
-"""One step's metrics, keyed as :data:`harness.mcap_log.METRIC_KEYS` (None where a metric
+"""One step's metrics, keyed as :data:`harness.observers.log.METRIC_KEYS` (None where a metric
 is not evaluated at that step or does not apply to the loop)."""
 
 
@@ -74,7 +74,7 @@ def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> 
 
     Returns:
         The composed config (not yet checked: :func:`run`, :func:`simulate` and
-        :func:`harness.build.build` check it).
+        :func:`harness.runs.build.build` check it).
 
     Raises:
         hydra.errors.HydraException, omegaconf.errors.OmegaConfBaseException: for an
@@ -120,9 +120,9 @@ def run(config: DictConfig | Sequence[str], out_dir: str | Path) -> RunLog:
         ``log.metadata["status"]``).
 
     Raises:
-        harness.checks.ConfigError: before anything is written, for a value that is not
+        harness.runs.checks.ConfigError: before anything is written, for a value that is not
             allowed, an existing log in ``out_dir`` or a log larger than the free disk.
-        harness.run.DiskFull: when the disk fills during the run.
+        harness.runs.run.DiskFull: when the disk fills during the run.
         KeyboardInterrupt, Exception: re-raised after the log is finalised ``aborted``.
     """
     out = Path(out_dir)
@@ -152,7 +152,7 @@ def simulate(
         An iterator of ``(record, metrics)`` per step.
 
     Raises:
-        harness.checks.ConfigError: for a value that is not allowed (at the call).
+        harness.runs.checks.ConfigError: for a value that is not allowed (at the call).
         harness.fokker_planck.NumericalError: while iterating, at the step where
             :func:`run` would end ``diverged`` for a non-finite estimate, command or
             metric or a mass drift.
@@ -166,7 +166,7 @@ def simulate(
 
 
 def _steps(parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]]:
-    """The steps of :func:`simulate`, computed as :func:`harness.run.run` computes them,
+    """The steps of :func:`simulate`, computed as :func:`harness.runs.run.run` computes them,
     seen by the observers that compute (``computes``: the metrics, the swarm metrics,
     the estimator's numbers, the divergence guard); none that writes or shows.
     """

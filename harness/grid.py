@@ -175,3 +175,26 @@ def _gradient_1d(n: int, h: float) -> sp.csr_matrix:
     d[0, 0], d[0, 1] = -0.5 / h, 0.5 / h
     d[n - 1, n - 2], d[n - 1, n - 1] = -0.5 / h, 0.5 / h
     return d.tocsr()
+
+
+ORDERS = (2, 4)
+"""The orders of the central differences :func:`grid_gradient` and
+:func:`own_velocities` take."""
+
+
+def grid_gradient(grid: Grid, f: np.ndarray, order: int = 2) -> np.ndarray:
+    """``G f`` (order 2: :meth:`harness.grid.Grid.gradient`) or ``G_4 f`` (order 4) of a
+    field ``(ny, nx)``, shape ``(2, ny, nx)`` (module docstring).
+
+    Raises:
+        ValueError: ``order`` is not one of :data:`ORDERS`.
+    """
+    if order not in ORDERS:
+        raise ValueError(f"order must be one of {ORDERS}, got {order!r}")
+    if order == 2:
+        return grid.gradient(f)
+    f = np.asarray(f, dtype=float)
+    e = np.pad(f, 2, mode="symmetric")  # the ghost cells reflected about the walls
+    gx = (8 * (e[2:-2, 3:-1] - e[2:-2, 1:-3]) - (e[2:-2, 4:] - e[2:-2, :-4])) / (12 * grid.dx)
+    gy = (8 * (e[3:-1, 2:-2] - e[1:-3, 2:-2]) - (e[4:, 2:-2] - e[:-4, 2:-2])) / (12 * grid.dy)
+    return np.stack([gx, gy])

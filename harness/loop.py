@@ -7,7 +7,7 @@
 Step ``n -> n + 1`` (the command ``u_n`` was computed at ``t_n`` and is held over the
 step):
 
-1. the plant moves under ``u_n`` (:meth:`harness.components.Plant.advance`), with the
+1. the plant moves under ``u_n`` (:meth:`harness.protocols.Plant.advance`), with the
    Fokker-Planck matrix ``A(v_n)`` of the command's field assembled once and shared
    with the estimator (None for a law without a field);
 2. the plant is measured at ``t_{n+1}`` (only when the estimator uses a measurement);
@@ -15,23 +15,23 @@ step):
 4. the control gives ``u_{n+1}`` from what it uses (:class:`~harness.records.ControlInput`:
    the time, the estimate, the robots' positions as observed, or without robots the
    mean-field density that stands for them; for a moving target, ``p_*(t_{n+1})`` and
-   ``d_t p_*`` there, :class:`harness.moving.TargetPath`).
+   ``d_t p_*`` there, :class:`harness.targets.moving.TargetPath`).
 
 Errors are measured against the plant's mean-field density ``p`` (notes section 5):
 ``Phi = p - p_*``, ``eps = p_hat - p`` and ``eps_g = q_hat - grad p``, the states of the
 paper's interconnected system (eqs. ``tracking error equation`` and ``interconnected
-system``); see :mod:`harness.metrics`.
+system``); see :mod:`harness.observers.metrics`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from harness.components import Control, Estimator, Plant
-from harness.densities import Target
 from harness.fokker_planck import FokkerPlanck, NumericalError
-from harness.moving import TargetPath
+from harness.protocols import Control, Estimator, Plant
 from harness.records import Command, ControlInput, Estimate, Measurement, StepInput, StepRecord
+from harness.targets.densities import Target
+from harness.targets.moving import TargetPath
 
 
 def observed(plant: Plant) -> np.ndarray | None:
@@ -53,7 +53,7 @@ class ClosedLoop:
         rng: The run's random generator (robots, synthetic noise).
         mass_drift: Largest relative change of ``int p`` from its start before the run
             counts as diverged (1).
-        target: The run's target at ``t = 0``; when it moves (:func:`harness.moving.moves`)
+        target: The run's target at ``t = 0``; when it moves (:func:`harness.targets.moving.moves`)
             the law is given ``p_*(t)`` and ``d_t p_*`` at every step. None, or a static
             target: the law's own target (the control input carries none).
     """

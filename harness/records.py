@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from harness.velocity import VelocityField, cap_vectors
 
 if TYPE_CHECKING:
-    from harness.densities import Target
+    from harness.targets.densities import Target
 
 
 @dataclass(frozen=True)
@@ -74,7 +74,7 @@ class RobotEstimates:
             reports the velocities it would command from it at the robots' positions
             (:attr:`Command.reference`).
         order: The order of those central differences, 2 (``G``) or 4 (``G_4``)
-            (:func:`harness.robot_law.grid_gradient`); also used for the reference.
+            (:func:`harness.grid.grid_gradient`); also used for the reference.
 
     The arrays may be an estimator's own state (a copy would cost ``N M`` values per
     step), like ``StepRecord.positions``: valid until the next step, which may
@@ -103,9 +103,9 @@ class Estimate:
             accepts it moves each robot by the law of its own estimate.
         fields: Further density fields ``(ny, nx)`` (1 / length^2) the estimator
             publishes, by name: logged as ``/fields/<name>`` at the field rate, in this
-            order (see :mod:`harness.mcap_log`).
+            order (see :mod:`harness.observers.log`).
         metrics: Further per-step numbers the estimator publishes, by name; the log
-            writes the ones its contract lists (:data:`harness.mcap_log.METRIC_KEYS`).
+            writes the ones its contract lists (:data:`harness.observers.log.METRIC_KEYS`).
     """
 
     p_hat: np.ndarray
@@ -134,10 +134,10 @@ class ControlInput:
             stands for them (the mean-field plant's state; the agents plant's limit
             ``p_inf``): a law of the positions evaluates its mean-field form on it.
             None with robots.
-        target: The target at ``t``, ``p_*(t)`` (a :class:`harness.densities.Target`),
-            when it moves (:mod:`harness.moving`); None for a static target (the law's
+        target: The target at ``t``, ``p_*(t)`` (a :class:`harness.targets.densities.Target`),
+            when it moves (:mod:`harness.targets.moving`); None for a static target (the law's
             own). A law that follows a moving target uses it in place of its own
-            (:class:`harness.control.FieldLaw`).
+            (:class:`harness.control.field.FieldLaw`).
         target_rate: ``d_t p_*`` on the grid at ``t``, ``(ny, nx)`` (1 / (length^2 s)),
             when the target moves, else None.
     """

@@ -118,3 +118,31 @@ def centres_to_face_x(f: np.ndarray) -> np.ndarray:
 def centres_to_face_y(f: np.ndarray) -> np.ndarray:
     """Average of a cell field onto the interior y-faces, ``(ny - 1, nx)``."""
     return 0.5 * (f[1:, :] + f[:-1, :])
+
+
+def interpolate(grid: Grid, centres: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Bilinear interpolation of a cell-centred vector field at positions.
+
+    Args:
+        grid: The grid.
+        centres: Field of shape ``(c, ny, nx)``.
+        positions: Points of shape ``(2, N)`` inside the domain.
+
+    Returns:
+        Values of shape ``(c, N)``. Beyond the outermost cell centres (within half
+        a cell of a wall) the field is extended by its nearest centre values.
+    """
+    c = centres.shape[0]
+    u = np.clip((positions[0] - grid.x0) / grid.dx - 0.5, 0.0, grid.nx - 1)
+    w = np.clip((positions[1] - grid.y0) / grid.dy - 0.5, 0.0, grid.ny - 1)
+    i0 = np.minimum(u.astype(np.intp), grid.nx - 2)
+    j0 = np.minimum(w.astype(np.intp), grid.ny - 2)
+    fx = u - i0
+    fy = w - j0
+    base = j0 * grid.nx + i0
+    flat = centres.reshape(c, -1)
+    v00 = flat[:, base]
+    v10 = flat[:, base + 1]
+    v01 = flat[:, base + grid.nx]
+    v11 = flat[:, base + grid.nx + 1]
+    return (v00 + fx * (v10 - v00)) * (1 - fy) + (v01 + fx * (v11 - v01)) * fy

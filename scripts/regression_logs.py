@@ -4,7 +4,8 @@
     python scripts/regression_logs.py diff OLD NEW
 
 ``run`` writes ``OUT/NAME/run.mcap`` for: the two runs of ``make reproduce`` (the
-paper's experiment and the mean-field check), a decentralised smoke run, and the first
+paper's experiment and the mean-field check), a decentralised smoke run, a short run of
+unicycles behind a lossy, late link, and the first
 job of every study preset in ``conf/experiment/`` (the first value of each sweep axis,
 as Hydra's basic sweeper orders them), each run once from the checkout ``--repo``
 (default: this one) with the Python running this script. ``diff`` compares every log of
@@ -28,6 +29,14 @@ REPRODUCE = {
     "reproduce": [],
     "reproduce_meanfield": ["plant=meanfield", "estimator=exact", "log.field_every=100"],
     "distributed_smoke": ["+experiment=smoke", "estimator=distributed"],
+    "unicycles_link": [
+        "+experiment=smoke",
+        "plant=unicycles",
+        "link.period=0.04",
+        "link.latency=0.02",
+        "link.loss=0.3",
+        "sim.t_final=1",
+    ],
 }
 
 

@@ -15,8 +15,8 @@ import pytest
 from omegaconf import DictConfig
 
 from harness.api import CONFIG_DIR, compose
-from harness.densities import DEFAULT_TARGET, Target
 from harness.grid import Grid
+from harness.targets.densities import DEFAULT_TARGET, Target
 
 # The tests' runs compute their finite-N floors (log.floor_cache defaults to this
 # variable): no files in the user's cache, and two runs of a test log the same theory
@@ -73,8 +73,8 @@ def refusal() -> Callable[[Sequence[str]], str | None]:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    from harness.build import build
-    from harness.checks import ConfigError, describe
+    from harness.runs.build import build
+    from harness.runs.checks import ConfigError, describe
 
     def refuse(overrides: Sequence[str]) -> str | None:
         try:

@@ -2,11 +2,11 @@ import numpy as np
 import pytest
 
 from harness import exact_solutions
-from harness.agents import Swarm, interpolate
-from harness.densities import GaussianMixture
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.velocity import VelocityField
+from harness.plants.agents import Swarm
+from harness.targets.densities import GaussianMixture
+from harness.velocity import VelocityField, interpolate
 
 
 def test_interpolation_is_exact_for_bilinear_fields(rng):
@@ -152,7 +152,7 @@ def test_parallel_step_equals_reference_and_is_independent_of_thread_count(n_rob
 
 
 def test_parallel_draw_gives_standard_normals():
-    from harness.agents import PARALLEL_DRAW_MIN, draw_normals
+    from harness.plants.agents import PARALLEL_DRAW_MIN, draw_normals
 
     out = np.empty((2, PARALLEL_DRAW_MIN))
     draw_normals(np.random.default_rng(9), out)
@@ -166,12 +166,12 @@ def test_parallel_draw_gives_standard_normals():
     from scipy import stats
 
     assert stats.kstest(z, "norm").pvalue > 1e-3
-    from harness.agents import DRAW_CHUNK as chunk
+    from harness.plants.agents import DRAW_CHUNK as chunk
 
     for c in range(z.size // chunk):
         assert stats.kstest(z[c * chunk : (c + 1) * chunk], "norm").pvalue > 1e-4
     # chunks are independent streams: no two chunks repeat each other
-    from harness.agents import DRAW_CHUNK
+    from harness.plants.agents import DRAW_CHUNK
 
     assert not np.array_equal(z[:DRAW_CHUNK], z[DRAW_CHUNK : 2 * DRAW_CHUNK])
     # and the same generator state gives the same numbers

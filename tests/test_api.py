@@ -19,7 +19,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from harness import api
-from harness.checks import ConfigError
+from harness.runs.checks import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "explore.py"
@@ -52,13 +52,13 @@ def test_compose_repeatedly_from_any_directory_and_inside_hydra(tmp_path, monkey
     monkeypatch.chdir(tmp_path)
     assert api.compose(["grid.n=12"]).grid.n == 12
     assert api.compose(["grid.n=13"]).grid.n == 13
-    assert api.compose().control._target_ == "harness.control.PaperControl"
+    assert api.compose().control._target_ == "harness.control.paper.PaperControl"
     assert not GlobalHydra.instance().is_initialized()
     mine = tmp_path / "mine"
     mine.mkdir()
     (mine / "app.yaml").write_text("answer: 42\n")
     with initialize_config_dir(config_dir=str(mine), version_base="1.3"):
-        assert api.compose(["control=heat"]).control._target_ == "harness.control.HeatControl"
+        assert api.compose(["control=heat"]).control._target_ == "harness.control.heat.HeatControl"
         assert hydra_compose("app").answer == 42  # the caller's Hydra is back as it was
     assert not GlobalHydra.instance().is_initialized()
 
@@ -66,7 +66,7 @@ def test_compose_repeatedly_from_any_directory_and_inside_hydra(tmp_path, monkey
 def test_compose_takes_a_search_path_of_ones_own(tmp_path):
     (tmp_path / "control").mkdir()
     (tmp_path / "control" / "mine.yaml").write_text(
-        "_target_: harness.control.PaperControl\nalpha: 0.01\nsigma: ${dynamics.sigma}\n"
+        "_target_: harness.control.paper.PaperControl\nalpha: 0.01\nsigma: ${dynamics.sigma}\n"
     )
     cfg = api.compose([f"hydra.searchpath=[file://{tmp_path}]", "control=mine"])
     assert cfg.control.alpha == 0.01

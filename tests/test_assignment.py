@@ -1,4 +1,4 @@
-"""Optimal-transport deployment (harness/assignment.py): the assignment against brute
+"""Optimal-transport deployment (harness/control/assignment.py): the assignment against brute
 force and against the dense exact one, the robots' arrival, the quantisation, and closed
 loops through the real config."""
 
@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from harness import api, assignment
-from harness.assignment import (
+from harness import api
+from harness.control import assignment
+from harness.control.assignment import (
     AssignmentControl,
     exact_assignment,
     large_assignment,
@@ -18,13 +19,13 @@ from harness.assignment import (
     violations,
     violations_reference,
 )
-from harness.build import build
-from harness.densities import DEFAULT_TARGET, Target
+from harness.control.guidance import target_masses
+from harness.control.waypoints import cell_of
 from harness.grid import Grid
-from harness.guidance import target_masses
 from harness.loop import ClosedLoop
 from harness.records import ControlInput, Estimate
-from harness.waypoints import cell_of
+from harness.runs.build import build
+from harness.targets.densities import DEFAULT_TARGET, Target
 
 LARGE_TOLERANCE = 1.01
 """The stated accuracy of :func:`large_assignment` when it stops uncertified: at most 1 %

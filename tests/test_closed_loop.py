@@ -8,10 +8,10 @@ import pytest
 from mcap.reader import make_reader
 
 from analysis.load import load_run
-from harness.densities import DEFAULT_TARGET
 from harness.grid import Grid
-from harness.mcap_log import METRIC_KEYS
-from harness.run import run
+from harness.observers.log import METRIC_KEYS
+from harness.runs.run import run
+from harness.targets.densities import DEFAULT_TARGET
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -31,15 +31,15 @@ def test_default_config_is_the_papers(compose):
     assert cfg.dynamics.sigma == pytest.approx(5e-5) and cfg.control.alpha == pytest.approx(0.003)
     assert cfg.kde.bandwidth == pytest.approx(0.04)
     assert (cfg.init.x0, cfg.init.x1, cfg.init.y0, cfg.init.y1) == (0.15, 0.85, 0.15, 0.85)
-    assert cfg.init._target_ == "harness.densities.Box"
-    assert cfg.plant._target_ == "harness.plants.Agents"
-    assert cfg.estimator._target_ == "harness.estimators.FilterEstimator"
+    assert cfg.init._target_ == "harness.targets.densities.Box"
+    assert cfg.plant._target_ == "harness.plants.agents.Agents"
+    assert cfg.estimator._target_ == "harness.estimators.filters.estimator.FilterEstimator"
     assert cfg.filter.engine == "local"
-    assert cfg.control._target_ == "harness.control.PaperControl" and cfg.sim.t_final >= 100
+    assert cfg.control._target_ == "harness.control.paper.PaperControl" and cfg.sim.t_final >= 100
 
 
 def test_public_keys_reach_the_components(compose):
-    from harness.build import build
+    from harness.runs.build import build
 
     cfg = compose(["agents.n=77", "kde.bandwidth=0.05", "dynamics.sigma=1e-4", "grid.n=10"])
     parts = build(cfg)

@@ -9,16 +9,17 @@ import pytest
 import scipy.fft as sfft
 import scipy.sparse as sp
 
-from harness.build import build
-from harness.decentralised import DynamicAverageConsensus, communication_graph, consensus_weights
-from harness.decentralised.band import BandMessages
-from harness.decentralised.estimator import RobotEstimators
-from harness.decentralised.robot_kde import kernel_factors, robot_kernels
-from harness.filters.common import FilterSettings
+from harness.estimators.distributed.band import BandMessages
+from harness.estimators.distributed.consensus import DynamicAverageConsensus, consensus_weights
+from harness.estimators.distributed.estimator import RobotEstimators
+from harness.estimators.distributed.graph import communication_graph
+from harness.estimators.distributed.robot_kde import kernel_factors, robot_kernels
+from harness.estimators.filters.common import FilterSettings
 from harness.grid import Grid
 from harness.loop import ClosedLoop
-from harness.motion import command_disagreement
+from harness.observers.motion import command_disagreement
 from harness.records import Command, Estimate, StepRecord
+from harness.runs.build import build
 
 H = 0.04
 

@@ -1,10 +1,11 @@
 import numpy as np
 import pytest
 
-from harness.control import heat_law, paper_law, paper_law_reference
-from harness.densities import Box, Uniform
+from harness.control.heat import heat_law
+from harness.control.paper import paper_law, paper_law_reference
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.targets.densities import Box, Uniform
 
 
 def test_paper_law_formula_at_centres(grid30, target30, rng):
@@ -19,8 +20,8 @@ def test_paper_law_formula_at_centres(grid30, target30, rng):
 
 @pytest.mark.parametrize("debias", [False, True])
 def test_compiled_paper_law_equals_the_numpy_statement_bit_for_bit(debias, rng):
-    from harness.densities import DEFAULT_TARGET, GaussianMixture, Target
-    from harness.smoothing import smoothed_target
+    from harness.estimators.smoothing import smoothed_target
+    from harness.targets.densities import DEFAULT_TARGET, GaussianMixture, Target
 
     g = Grid(37, 23, 0.0, 1.0, 0.0, 0.6)  # rectangular, dx != dy
     d = DEFAULT_TARGET  # its bumps moved into the rectangle (y scaled by 0.6)
@@ -56,7 +57,7 @@ def test_paper_law_faces_carry_the_log_drift(grid30, target30):
 
 
 def test_face_drift_converges_to_centre_drift_at_second_order():
-    from harness.densities import DEFAULT_TARGET, Target
+    from harness.targets.densities import DEFAULT_TARGET, Target
 
     gaps = []
     for n in (30, 60, 120):
@@ -113,7 +114,7 @@ def test_heat_law_compensation_removes_the_noise_bias():
     """With exact estimates the compensated heat law settles at p_* (up to the face
     averaging, O(dx^2)); without compensation at (alpha p_* + sigma c) / (alpha + sigma),
     a bias of order sigma / alpha."""
-    from harness.densities import DEFAULT_TARGET, Target
+    from harness.targets.densities import DEFAULT_TARGET, Target
 
     g = Grid.square(16)
     target = Target.from_density(g, DEFAULT_TARGET)
@@ -145,7 +146,7 @@ def test_larger_gain_converges_faster(target30, grid30):
 
 def test_grid_independent_of_orientation():
     # a target symmetric under x <-> y gives a velocity field with the same symmetry
-    from harness.densities import GaussianMixture, Target
+    from harness.targets.densities import GaussianMixture, Target
 
     g = Grid.square(16)
     t = Target.from_density(g, GaussianMixture(means=((0.3, 0.3),), stds=(0.1,), weights=(1,)))

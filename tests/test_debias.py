@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from analysis.load import load_run
-from harness.build import build
-from harness.run import run
+from harness.runs.build import build
+from harness.runs.run import run
 
 
 def test_debiased_law_vanishes_at_the_smoothed_target(compose):

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 
 from analysis.load import load_run
-from harness.agents import interpolate
-from harness.build import build
-from harness.control import PaperControl
+from harness.control.paper import PaperControl
 from harness.loop import ClosedLoop
-from harness.mcap_log import METRIC_KEYS
+from harness.observers.log import METRIC_KEYS
 from harness.records import Command, ControlInput
-from harness.run import run
+from harness.runs.build import build
+from harness.runs.run import run
+from harness.velocity import interpolate
 
 NETWORK_KEYS = METRIC_KEYS[-8:]
 assert NETWORK_KEYS[0] == "consensus_l2"

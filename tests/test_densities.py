@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from harness.components import ParameterError
-from harness.densities import DEFAULT_TARGET, Box, GaussianMixture, Target, Uniform
 from harness.grid import Grid
+from harness.parameters import ParameterError
+from harness.targets.densities import DEFAULT_TARGET, Box, GaussianMixture, Target, Uniform
 
 
 @pytest.mark.parametrize("n", [7, 30, 64])

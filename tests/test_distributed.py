@@ -4,31 +4,32 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.spatial.distance import cdist
 
-from harness.agents import Swarm, interpolate
-from harness.control import HeatControl, PaperControl, paper_law
-from harness.decentralised import (
+from harness.control.heat import HeatControl
+from harness.control.own_estimates import own_velocities, own_velocities_reference
+from harness.control.paper import PaperControl, paper_law
+from harness.estimators.distributed.consensus import (
     DynamicAverageConsensus,
-    RobotEstimators,
-    RobotFilters,
-    algebraic_connectivity,
-    central_gap_l2,
-    communication_graph,
-    consensus_l2,
     consensus_weights,
     message_counts,
 )
-from harness.decentralised.density import density_filter_reference
-from harness.decentralised.graph import n_components
-from harness.decentralised.metrics import estimate_spread
-from harness.decentralised.robot_kde import robot_kernels
-from harness.densities import DEFAULT_TARGET, Box, Target
-from harness.filters.common import FilterSettings, MeasurementModel
-from harness.filters.local import LocalFilters
+from harness.estimators.distributed.density import density_filter_reference
+from harness.estimators.distributed.estimator import RobotEstimators
+from harness.estimators.distributed.filters import RobotFilters
+from harness.estimators.distributed.graph import (
+    algebraic_connectivity,
+    communication_graph,
+    n_components,
+)
+from harness.estimators.distributed.metrics import central_gap_l2, consensus_l2, estimate_spread
+from harness.estimators.distributed.robot_kde import robot_kernels
+from harness.estimators.filters.common import FilterSettings, MeasurementModel
+from harness.estimators.filters.local import LocalFilters
+from harness.estimators.kde import KDE
 from harness.fokker_planck import FokkerPlanck
-from harness.grid import Grid
-from harness.kde import KDE
-from harness.robot_law import grid_gradient, own_velocities, own_velocities_reference
-from harness.velocity import VelocityField
+from harness.grid import Grid, grid_gradient
+from harness.plants.agents import Swarm
+from harness.targets.densities import DEFAULT_TARGET, Box, Target
+from harness.velocity import VelocityField, interpolate
 
 H = 0.04
 SIGMA = 5e-5
@@ -398,7 +399,7 @@ def test_consensus_weights_are_doubly_stochastic_and_nonnegative(rng):
 
 
 def test_row_solver_matches_superlu(rng):
-    from harness.decentralised.row_solver import RowSolver
+    from harness.estimators.distributed.row_solver import RowSolver
 
     g = Grid(9, 8)
     a = FokkerPlanck(g, 1e-3).matrix(VelocityField.from_centres(rng.normal(size=(2, *g.shape))))
@@ -498,9 +499,9 @@ def test_mixing_by_neighbour_sums_equals_the_sparse_product(rng, radius):
 @pytest.mark.parametrize(("shape", "h"), [((30, 30), 0.04), ((17, 11), 0.1), ((64, 64), 0.01)])
 def test_compiled_kernel_factors_equal_the_kde_kernel(rng, shape, h):
     """Products of exponentials (two per robot, axis and image) against
-    :func:`harness.kde.kernel_1d` (one exponential per value), robots on the walls too."""
-    from harness.decentralised.robot_kde import kernel_factors
-    from harness.kde import kernel_1d
+    :func:`harness.estimators.kde.kernel_1d` (one exponential per value), robots on the walls too."""
+    from harness.estimators.distributed.robot_kde import kernel_factors
+    from harness.estimators.kde import kernel_1d
 
     g = Grid(*shape)
     pos = rng.random((2, 400))

@@ -27,11 +27,12 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from analysis.load import LogWarning, load_run
-from harness import checks
-from harness.build import build
-from harness.checks import ConfigError
-from harness.jobs import MAX_NAME_BYTES, collect, job_dir_name, run_job, verify_log
-from harness.run import DiskFull, config_hash, run
+from harness.runs import checks
+from harness.runs.build import build
+from harness.runs.checks import ConfigError
+from harness.runs.jobs import MAX_NAME_BYTES, collect, job_dir_name, run_job, verify_log
+from harness.runs.identity import config_hash
+from harness.runs.run import DiskFull, run
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["grid.n=8", "agents.n=50", "sim.t_final=0.06", "sim.dt=0.02", "log.progress=off"]
@@ -257,7 +258,7 @@ def test_memory_estimate_bounds_the_measured_peak(compose):
 
 
 def test_dense_filter_estimate_grows_as_cells_squared_and_is_refused(compose):
-    from harness.estimators import FilterEstimator
+    from harness.estimators.filters.estimator import FilterEstimator
     from harness.grid import Grid
 
     dense = [
@@ -306,7 +307,7 @@ def test_cli_refuses_unread_keys_and_resource_bombs_without_output(tmp_path):
 
 # ------------------------------------------------------------ 4. divergence guard
 def test_huge_finite_estimates_end_diverged_not_completed(tmp_path, compose, monkeypatch):
-    from harness.estimators import KDEEstimator
+    from harness.estimators.kde import KDEEstimator
     from harness.records import Estimate
 
     original = KDEEstimator.step
@@ -415,7 +416,7 @@ def test_default_run_dirs_are_unique_within_one_second(tmp_path):
 def test_full_disk_mid_run_is_one_line_and_leaves_what_was_written(tmp_path, compose, monkeypatch):
     # the up-front estimate would refuse these runs; the disk fills up after the start
     # (another process writing) is what is tested here
-    monkeypatch.setattr("harness.run.check_disk", lambda *args: 0)
+    monkeypatch.setattr("harness.runs.run.check_disk", lambda *args: 0)
     cfg = compose(
         [
             "grid.n=10",

@@ -2,18 +2,18 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from harness.densities import GaussianMixture
-from harness.filters.common import FilterSettings, Integrator, MeasurementModel
-from harness.filters.compare import compare_filters
-from harness.filters.local import (
+from harness.estimators.filters.common import FilterSettings, Integrator, MeasurementModel
+from harness.estimators.filters.compare import compare_filters
+from harness.estimators.filters.local import (
     LocalFilters,
     WeightedPoisson,
     squared_transition,
     squared_transition_reference,
 )
-from harness.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
+from harness.estimators.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.targets.densities import GaussianMixture
 from harness.velocity import VelocityField
 
 
@@ -178,7 +178,7 @@ def test_compiled_poisson_iteration_matches_the_sparse_lu_reference(shape, rng):
 def test_band_projection_by_truncated_matrices_is_the_transform_projection(shape, rng):
     """``Pi`` by the band's rows of the DCT matrices equals ``Pi`` by full fast
     transforms, for one column and several, and is an orthogonal projector."""
-    from harness.filters.common import BandLimit
+    from harness.estimators.filters.common import BandLimit
 
     nx, ny = shape
     g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.9)
@@ -262,10 +262,10 @@ def test_weighted_poisson_fast_transform_preconditioner(rng):
 def _paper_loop_tail(n: int, seconds: float, seed: int = 0) -> tuple[float, float]:
     """The paper's agent loop with both fast filters (N = 1024, h = 0.04, dt = 0.01):
     mean of ||p_hat - p_*|| over the second half of the run, and its maximum."""
-    from harness.agents import Swarm
-    from harness.control import paper_law
-    from harness.densities import DEFAULT_TARGET, Box, Target
-    from harness.kde import KDE
+    from harness.control.paper import paper_law
+    from harness.estimators.kde import KDE
+    from harness.plants.agents import Swarm
+    from harness.targets.densities import DEFAULT_TARGET, Box, Target
 
     sigma, dt, alpha = 5e-5, 0.01, 0.003
     rng = np.random.default_rng(seed)
@@ -321,8 +321,8 @@ def test_band_poisson_is_the_galerkin_solve_of_the_dense_operator(shape, rng):
     """The Gram matrix from the transforms of C equals ``B^T G^T diag(C) G B`` formed
     with the sparse gradient matrix, and the solve is that system's, on a rectangular
     grid with rough weights; for constant weights it is the grid solve projected."""
-    from harness.filters.common import BandLimit
-    from harness.filters.local import BandPoisson
+    from harness.estimators.filters.common import BandLimit
+    from harness.estimators.filters.local import BandPoisson
 
     nx, ny = shape
     g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.8)
@@ -355,8 +355,8 @@ def test_band_gram_does_not_depend_on_thread_count(rng):
     import numba
 
     from harness.compiled.filters import band_gram
-    from harness.filters.common import BandLimit
-    from harness.filters.local import BandPoisson
+    from harness.estimators.filters.common import BandLimit
+    from harness.estimators.filters.local import BandPoisson
 
     g = Grid.square(64)
     bp = BandPoisson(g, BandLimit(g, 2.5 / 0.04))
@@ -408,8 +408,8 @@ def test_band_transition_variance_is_the_dense_congruence(rng):
     ``diag(F1 S R S F1^T)`` with the dense correlation matrices of the band-limited
     white field (from the dense projector ``Pi``, full cosine transforms) and of its
     gradient components (``G_c Pi G_c^T`` with the grid's gradient matrix)."""
-    from harness.filters.common import BandLimit
-    from harness.filters.local import transition_variance, transition_variance_reference
+    from harness.estimators.filters.common import BandLimit
+    from harness.estimators.filters.local import transition_variance, transition_variance_reference
 
     g = Grid(14, 12, 0.0, 1.0, 0.0, 0.9)
     band = BandLimit(g, 25.0)
@@ -444,8 +444,8 @@ def test_band_limited_variance_decays_at_the_band_rate_on_every_grid():
     ``dt sigma kappa_c^2`` per step (the mean of ``2 dt sigma |kappa|^2`` over the
     disc), whatever the grid; the white per-cell model by ``1 - (1 - 4 r)^2 - 4 r^2``
     with ``r = dt sigma / dx^2``, about four times faster for each halving of dx."""
-    from harness.filters.common import BandLimit
-    from harness.filters.local import transition_variance
+    from harness.estimators.filters.common import BandLimit
+    from harness.estimators.filters.local import transition_variance
 
     sigma, dt, cutoff = 5e-5, 0.01, 2.5 / 0.04
     band_rate, white_rate = {}, {}
@@ -473,7 +473,7 @@ def test_band_transition_variance_does_not_depend_on_thread_count(rng):
 
     from harness import compiled
     from harness.compiled.filters import band_transition_variance, band_transition_variance_rows
-    from harness.filters.common import BandLimit
+    from harness.estimators.filters.common import BandLimit
 
     g = Grid.square(256)
     assert g.size >= compiled.PARALLEL_MIN_CELLS
@@ -506,7 +506,7 @@ def test_band_correlations_are_the_dense_projectors_entries():
     """``rho[k, o, i]`` is the correlation of cell ``i`` with ``i + offset`` in the dense
     ``Pi`` (full cosine transforms) and in ``G_c Pi G_c^T``; 0 off the grid; within
     [-1, 1]; and 1 at no offset would be the diagonal (checked through symmetry)."""
-    from harness.filters.common import BAND_OFFSETS, BandLimit
+    from harness.estimators.filters.common import BAND_OFFSETS, BandLimit
 
     g = Grid(14, 12, 0.0, 1.0, 0.0, 0.9)
     band = BandLimit(g, 25.0)
@@ -535,8 +535,8 @@ def test_band_correlations_are_the_dense_projectors_entries():
 def test_band_transition_variance_refuses_couplings_that_wrap_a_row(n):
     """A coupling of a row's first cell to the previous row's last (not a grid
     neighbour, though ``i - 1``) is refused, by the serial and the parallel build."""
-    from harness.filters.common import BandLimit
-    from harness.filters.local import transition_variance
+    from harness.estimators.filters.common import BandLimit
+    from harness.estimators.filters.local import transition_variance
 
     g = Grid.square(n)
     rho = BandLimit(g, 2.5 / 0.04).correlations()

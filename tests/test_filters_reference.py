@@ -2,9 +2,13 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from harness.densities import DEFAULT_TARGET, Box, GaussianMixture
-from harness.filters.common import FilterSettings, Integrator, MeasurementModel, transition_dense
-from harness.filters.reference import (
+from harness.estimators.filters.common import (
+    FilterSettings,
+    Integrator,
+    MeasurementModel,
+    transition_dense,
+)
+from harness.estimators.filters.reference import (
     FilterpyDensityFilter,
     FilterpyGradientFilter,
     ReferenceDensityFilter,
@@ -12,6 +16,7 @@ from harness.filters.reference import (
 )
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.targets.densities import DEFAULT_TARGET, Box, GaussianMixture
 from harness.velocity import VelocityField
 
 

@@ -1,4 +1,4 @@
-"""The finite-N floors stored by content (harness/floor_cache.py): reused bit-identical,
+"""The finite-N floors stored by content (harness/observers/floor_cache.py): reused bit-identical,
 missed on any change of input, never trusted when damaged, whole under concurrent
 writers, and off when disabled. Small floors (N = 64, 2 draws, 12 x 12 grid): ~10 ms each.
 """
@@ -13,11 +13,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-import harness.swarm_metrics
+import harness.observers.swarm_metrics
 from analysis.load import load_run
 from harness.api import CONFIG_DIR
-from harness.densities import DEFAULT_TARGET, GaussianMixture, Target, Uniform
-from harness.floor_cache import (
+from harness.grid import Grid
+from harness.observers.floor_cache import (
     FloorCache,
     FloorCacheWarning,
     canonical,
@@ -25,10 +25,10 @@ from harness.floor_cache import (
     digest,
     floor_key,
 )
-from harness.grid import Grid
-from harness.identity import config_hash
-from harness.metrics import SwarmTruth
-from harness.run import run
+from harness.observers.swarm import SwarmTruth
+from harness.runs.identity import config_hash
+from harness.runs.run import run
+from harness.targets.densities import DEFAULT_TARGET, GaussianMixture, Target, Uniform
 
 BASE = {"grid_n": 12, "n_robots": 64, "bandwidth": 0.08, "draws": 2, "seed": 3}
 FLOOR_KEYS = {
@@ -64,15 +64,15 @@ def record(cache, density=DEFAULT_TARGET, **change) -> dict[str, str]:
 
 @pytest.fixture
 def calls(monkeypatch) -> list[int]:
-    """Counts the calls of harness.swarm_metrics.floors (the computation)."""
+    """Counts the calls of harness.observers.swarm_metrics.floors (the computation)."""
     seen: list[int] = []
-    compute = harness.swarm_metrics.floors
+    compute = harness.observers.swarm_metrics.floors
 
     def counted(*args, **kwargs):
         seen.append(1)
         return compute(*args, **kwargs)
 
-    monkeypatch.setattr(harness.swarm_metrics, "floors", counted)
+    monkeypatch.setattr(harness.observers.swarm_metrics, "floors", counted)
     return seen
 
 
@@ -90,7 +90,7 @@ def test_a_second_run_reads_the_cache_bit_identical_without_computing(tmp_path, 
     assert FLOOR_KEYS <= set(first)
     (path,) = tmp_path.glob("*.json")
     assert path.stem == first["swarm_floor_key"]
-    monkeypatch.setattr(harness.swarm_metrics, "floors", refuse_to_compute)
+    monkeypatch.setattr(harness.observers.swarm_metrics, "floors", refuse_to_compute)
     with warnings.catch_warnings():
         warnings.simplefilter("error", FloorCacheWarning)
         second = record(tmp_path)
@@ -268,7 +268,7 @@ def test_runs_reuse_floors_and_the_cache_does_not_change_the_identity(
     assert config_hash(cfg) == config_hash(compose([*smoke, "log.floor_cache=null"]))
     assert config_hash(cfg) == config_hash(compose(smoke))
     run(cfg, tmp_path / "a")
-    monkeypatch.setattr(harness.swarm_metrics, "floors", refuse_to_compute)
+    monkeypatch.setattr(harness.observers.swarm_metrics, "floors", refuse_to_compute)
     run(compose([*smoke, f"log.floor_cache={cache}"]), tmp_path / "b")
     a, b = load_run(tmp_path / "a"), load_run(tmp_path / "b")
     ta, tb = a.metadata["theory"], b.metadata["theory"]

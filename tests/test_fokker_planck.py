@@ -9,8 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from harness import exact_solutions
-from harness.control import paper_law
-from harness.densities import Box, Target, Uniform
+from harness.control.paper import paper_law
 from harness.fokker_planck import (
     _MAX_SERIES_TERMS,
     FokkerPlanck,
@@ -23,6 +22,7 @@ from harness.fokker_planck import (
     red_black_solve,
 )
 from harness.grid import Grid
+from harness.targets.densities import Box, Target, Uniform
 from harness.velocity import VelocityField
 
 
@@ -192,8 +192,8 @@ def lyapunov(grid, p, target):
 
 @pytest.mark.parametrize("n,alpha,dt,steps", [(30, 0.003, 0.01, 300), (16, 0.1, 5e-4, 400)])
 def test_lyapunov_never_increases_in_closed_loop(n, alpha, dt, steps):
-    from harness.control import sampled_data_dt_bound
-    from harness.densities import DEFAULT_TARGET
+    from harness.control.field import sampled_data_dt_bound
+    from harness.targets.densities import DEFAULT_TARGET
 
     grid = Grid.square(n)
     target = Target.from_density(grid, DEFAULT_TARGET)
@@ -258,7 +258,7 @@ def test_discrete_eigenvalue_converges_to_sigma_pi_squared_at_second_order():
 def test_box_start_is_stable_for_sweep_extremes():
     # grid 128, alpha 0.1, dt 0.05: the implicit step stays positive and finite
     g = Grid.square(128)
-    from harness.densities import DEFAULT_TARGET
+    from harness.targets.densities import DEFAULT_TARGET
 
     target = Target.from_density(g, DEFAULT_TARGET)
     op = FokkerPlanck(g, 5e-5)
@@ -275,8 +275,8 @@ def test_box_start_is_stable_for_sweep_extremes():
 
 def _mid_run_velocity(g, rng):
     """The paper's law (alpha = 0.003) halfway between a KDE of the initial box and p_*."""
-    from harness.densities import DEFAULT_TARGET
-    from harness.kde import KDE
+    from harness.estimators.kde import KDE
+    from harness.targets.densities import DEFAULT_TARGET
 
     target = Target.from_density(g, DEFAULT_TARGET)
     y, _ = KDE(g, 0.04)(Box().sample(1024, g, rng))

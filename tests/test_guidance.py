@@ -1,4 +1,4 @@
-"""Probabilistic swarm guidance (harness/guidance.py, harness/waypoints.py): the chains'
+"""Probabilistic swarm guidance (harness/control/guidance.py, harness/control/waypoints.py): the chains'
 properties against their definitions, the robots' observed moves against the chain, and
 closed loops through the real config."""
 
@@ -10,13 +10,13 @@ import pytest
 from scipy import stats
 
 from harness import api
-from harness.components import ParameterError
-from harness.densities import DEFAULT_TARGET, GaussianMixture, Target
+from harness.control.guidance import FeedbackGuidance, MetropolisGuidance, neighbour_table
+from harness.control.waypoints import PeriodClock, cell_of
+from harness.estimators.smoothing import cell_masses
 from harness.grid import Grid
-from harness.guidance import FeedbackGuidance, MetropolisGuidance, neighbour_table
+from harness.parameters import ParameterError
 from harness.records import ControlInput, Estimate
-from harness.swarm_metrics import cell_masses
-from harness.waypoints import PeriodClock, cell_of
+from harness.targets.densities import DEFAULT_TARGET, GaussianMixture, Target
 
 SMALL = (
     "grid.n=6",
@@ -114,7 +114,7 @@ def test_observed_transitions_through_the_loop_match_the_chain(compose):
     for rec, _ in api.simulate(cfg):
         if rec.step % steps_per_period == 0:
             cells.append(cell_of(Grid.square(6), rec.positions))
-    from harness.build import build
+    from harness.runs.build import build
 
     law = build(compose(["control=psg", *SMALL])).control
     m = law.matrix.toarray()
@@ -325,7 +325,7 @@ def test_closed_loop_runs(law, estimator, compose, smoke):
 @pytest.mark.parametrize(("law", "divides"), [("psg", "no"), ("psg_feedback", "yes"), ("ot", "no")])
 def test_the_laws_say_what_they_use(law, divides, compose, smoke, tmp_path):
     from analysis.load import load_run
-    from harness.run import run
+    from harness.runs.run import run
 
     result = run(compose([f"control={law}", *smoke, "sim.t_final=0.04"]), tmp_path)
     assert result.state == "completed", result.reason

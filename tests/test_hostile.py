@@ -18,10 +18,10 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from harness.build import build
-from harness.checks import ConfigError
-from harness.jobs import verify_log
-from harness.run import run
+from harness.runs.build import build
+from harness.runs.checks import ConfigError
+from harness.runs.jobs import verify_log
+from harness.runs.run import run
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["grid.n=8", "agents.n=50", "sim.t_final=0.06", "sim.dt=0.02", "log.progress=off"]
@@ -78,7 +78,7 @@ def test_concurrent_runs_into_one_directory_write_one_log(tmp_path, compose):
 
 
 def _checked_and_waiting(cfg, ready, done):
-    from harness.jobs import CheckCallback
+    from harness.runs.jobs import CheckCallback
 
     CheckCallback().on_run_start(cfg)  # passed its checks: about to open its log
     ready.set()
@@ -117,8 +117,8 @@ def test_sweep_resumed_after_a_code_change_reruns_every_job_whose_code_differs(
     import json
 
     from analysis import sweep
-    from harness import identity
-    from harness.jobs import run_job
+    from harness.runs import identity
+    from harness.runs.jobs import run_job
 
     repo = tmp_path / "code"
     repo.mkdir()
@@ -155,7 +155,7 @@ def test_sweep_resumed_after_a_code_change_reruns_every_job_whose_code_differs(
 def test_resume_never_overwrites_an_unfinished_log_of_another_config(tmp_path, compose):
     import json
 
-    from harness.jobs import run_job
+    from harness.runs.jobs import run_job
 
     out = tmp_path / "job"
     other = compose([*SMALL, "seed=9"])
@@ -189,10 +189,10 @@ def test_a_disk_full_during_a_sweep_records_the_reason_and_prints_the_table(
 ):
     import json
 
-    from harness import jobs
+    from harness.runs import jobs
 
     # the disk fills up after the up-front check (another process writing)
-    monkeypatch.setattr("harness.run.check_disk", lambda *args: 0)
+    monkeypatch.setattr("harness.runs.run.check_disk", lambda *args: 0)
     rates = ["log.field_every=1", "log.positions_every=1", "log.progress=off"]
     cfg = compose(["grid.n=10", "agents.n=2000", "sim.t_final=2", *rates])
     (tiny_disk / "sweep_status.md").write_text("| an older table |\n")
@@ -279,7 +279,7 @@ def test_whole_step_counts_and_centres_on_the_boundary_are_accepted(refusal):
 
 
 def test_a_law_whose_feedback_diffusivity_is_nan_is_refused(compose, monkeypatch):
-    from harness.control import PaperControl
+    from harness.control.paper import PaperControl
 
     monkeypatch.setattr(PaperControl, "feedback_diffusivity", lambda self, p0: float("nan"))
     with pytest.raises(ConfigError, match=r"^invalid config: control=.*feedback_diffusivity"):
@@ -364,8 +364,8 @@ def _tree(root, files):
     ids=["cgroup-v1-parent", "cgroup-v2-nested"],
 )
 def test_memory_limits_of_every_cgroup_level_are_found(tmp_path, compose, files, source):
-    from harness import checks
     from harness.grid import Grid
+    from harness.runs import checks
 
     files["proc/meminfo"] = "MemTotal: 64000000 kB\nMemAvailable: 60000000 kB\n"
     have = checks.memory_available(_tree(tmp_path, files))
@@ -506,7 +506,7 @@ def test_a_stalled_client_holds_the_live_view_only_briefly():
     pytest.importorskip("websockets")
     from test_live import Client, metrics_schema
 
-    from harness.live import LiveServer
+    from harness.observers.live import LiveServer
 
     server = LiveServer(port=0, backlog=1024)
     server.channel("/metrics", *metrics_schema())
@@ -710,7 +710,7 @@ def test_a_fifo_or_device_in_place_of_a_log_is_never_read_or_trusted(tmp_path, s
     import json
 
     from analysis import diff
-    from harness.jobs import collect
+    from harness.runs.jobs import collect
 
     fifo = tmp_path / "fifo" / "run.mcap"
     fifo.parent.mkdir()

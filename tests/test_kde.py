@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from harness.densities import Box, GaussianMixture, Target
+from harness.estimators.kde import KDE, noise_constants
 from harness.grid import Grid
-from harness.kde import KDE, noise_constants
+from harness.targets.densities import Box, GaussianMixture, Target
 
 
 def test_noise_constants_paper_values():
@@ -143,7 +143,7 @@ def test_monte_carlo_variance_matches_k_p_in_interior():
 
 
 def test_target_from_density_is_normalised_and_positive(grid30):
-    from harness.densities import DEFAULT_TARGET
+    from harness.targets.densities import DEFAULT_TARGET
 
     t = Target.from_density(grid30, DEFAULT_TARGET)
     assert grid30.integrate(t.p) == pytest.approx(1.0, rel=1e-13)

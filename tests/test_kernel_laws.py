@@ -1,4 +1,4 @@
-"""The kernel laws of the positions (harness/kernel_laws.py): the MMD flow and SVGD.
+"""The kernel laws of the positions (harness/control/kernels.py): the MMD flow and SVGD.
 
 Each check is against something the laws' code does not compute: the continuous target's
 own density and score (closed forms of the mixture), plain sums written here or in the
@@ -9,24 +9,19 @@ import numpy as np
 import pytest
 
 from harness import api
-from harness.agents import interpolate
-from harness.build import component
-from harness.components import ParameterError
-from harness.control import PaperControl
-from harness.densities import DEFAULT_TARGET, Box, GaussianMixture, Target
+from harness.control.kernels import image_kernel, slowest_rate
+from harness.control.mmd import MMDControl, mmd_feedback_reference
+from harness.control.paper import PaperControl
+from harness.control.svgd import SVGDControl, svgd_feedback_reference
+from harness.estimators.kde import KDE, kernel_1d
+from harness.estimators.smoothing import Smoother
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.kde import KDE, kernel_1d
-from harness.kernel_laws import (
-    MMDControl,
-    SVGDControl,
-    image_kernel,
-    mmd_feedback_reference,
-    slowest_rate,
-    svgd_feedback_reference,
-)
+from harness.parameters import ParameterError
 from harness.records import ControlInput, Estimate
-from harness.smoothing import Smoother
+from harness.runs.build import component
+from harness.targets.densities import DEFAULT_TARGET, Box, GaussianMixture, Target
+from harness.velocity import interpolate
 from tests.conftest import SMOKE
 
 SIGMA = 5e-5

@@ -8,14 +8,13 @@ import pytest
 from omegaconf import OmegaConf
 
 from harness import api
-from harness.agents import interpolate
 from harness.compiled.agents import speed_sums
-from harness.estimators import InjectedEstimator
+from harness.estimators.injected import InjectedEstimator
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.motion import speed_sums_reference
+from harness.observers.motion import speed_sums_reference
 from harness.records import Command
-from harness.velocity import VelocityField, cap_vectors
+from harness.velocity import VelocityField, cap_vectors, interpolate
 
 FAST = ("grid.n=16", "sim.dt=0.02", "log.progress=off", "log.floor_draws=4")
 
@@ -80,7 +79,7 @@ def test_effort_of_a_constant_field_is_its_squared_speed(rng):
     """A constant field ``c``: every robot is commanded ``c``, so ``effort = |c|^2`` and
     both speeds ``|c|``; on the mean-field plant the same, whatever the density.
     """
-    from harness.motion import motion
+    from harness.observers.motion import motion
     from harness.records import Estimate, StepRecord
 
     grid = Grid.square(9)
@@ -101,7 +100,7 @@ def test_localisation_noise_reaches_the_estimator_not_the_robots():
     standard deviation (inside the square); its measurement is the KDE of the observed
     positions, and the robots themselves are where the dynamics put them.
     """
-    from harness.build import build
+    from harness.runs.build import build
 
     s = 0.02
     plant = build(api.compose([*FAST, f"agents.localisation_noise={s}", "agents.n=4000"])).plant
@@ -121,8 +120,8 @@ def test_the_law_sees_the_observed_positions_and_the_records_the_true_ones():
     """Through the loop: the law gets the plant's observed positions, the step records
     (and so the swarm metrics) the true ones.
     """
-    from harness.build import build
     from harness.loop import ClosedLoop
+    from harness.runs.build import build
 
     exp = build(api.compose([*FAST, "agents.localisation_noise=0.02"]))
     seen = []
@@ -162,8 +161,8 @@ def test_no_localisation_noise_leaves_the_run_unchanged():
 
 
 def test_meanfield_plant_refuses_localisation_noise(compose):
-    from harness.build import build
-    from harness.checks import ConfigError
+    from harness.runs.build import build
+    from harness.runs.checks import ConfigError
 
     with pytest.raises(ConfigError, match="localisation_noise"):
         build(compose(["plant=meanfield", "agents.localisation_noise=0.01"]))
@@ -243,15 +242,15 @@ def test_hole_drives_the_estimate_towards_zero_on_its_region(target30):
     ],
 )
 def test_hole_parameters_are_checked(compose, override, key):
-    from harness.build import build
-    from harness.checks import ConfigError
+    from harness.runs.build import build
+    from harness.runs.checks import ConfigError
 
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         build(compose(["plant=meanfield", "estimator=injected", override]))
 
 
 def test_swarm_histogram_counts_as_numpy_histogram2d(rng):
-    from harness.agents import Swarm
+    from harness.plants.agents import Swarm
 
     grid = Grid.square(7)
     x = rng.uniform(0, 1, size=(2, 3000))

@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 from scipy.stats import binomtest
 
-from harness.agents import Swarm
 from harness.api import simulate
 from harness.grid import Grid
-from harness.link import Link
-from harness.plants import Agents
+from harness.plants.agents import Agents, Swarm
+from harness.plants.link import Link
 from harness.records import Command
 
 SMALL = ("grid.n=12", "agents.n=200", "sim.dt=0.02", "log.progress=off", "log.floor_draws=2")

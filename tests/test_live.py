@@ -26,13 +26,13 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 from mcap.reader import make_reader
 from mcap_protobuf.schema import build_file_descriptor_set
 
-import harness.live
-import harness.mcap_log
-import harness.run as harness_run
+import harness.observers.live
+import harness.observers.log
+import harness.runs.run as harness_run
 from analysis.load import load_run
 from harness.grid import Grid
-from harness.live import LiveServer, LiveServerError
-from harness.mcap_log import METRICS_SCHEMA, GridMsg, McapLogger, grid_message, time_ns
+from harness.observers.live import LiveServer, LiveServerError
+from harness.observers.log import METRICS_SCHEMA, GridMsg, McapLogger, grid_message, time_ns
 
 websockets = pytest.importorskip("websockets")
 
@@ -381,8 +381,8 @@ def test_live_run_publishes_while_running_and_leaves_the_log_unchanged(
                 received_before_end.append(len(client.messages))
                 super().finalize(*args, **kwargs)
 
-        monkeypatch.setattr(harness.live, "LiveServer", KeptOpen)
-        monkeypatch.setattr(harness.mcap_log, "McapLogger", WaitingLogger)
+        monkeypatch.setattr(harness.observers.live, "LiveServer", KeptOpen)
+        monkeypatch.setattr(harness.observers.log, "McapLogger", WaitingLogger)
         with Client(server.url, set(watched)) as client:
             on = harness_run.run(compose([*TINY, "log.live=true"]), tmp_path / "on")
             assert on.state == "completed"

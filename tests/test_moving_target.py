@@ -1,5 +1,5 @@
-"""Moving targets (``target=moving``, harness/moving.py): the static run at speed 0, the
-analytic ``d_t p_*``, the paper law's feedforward (harness/feedforward.py) and its
+"""Moving targets (``target=moving``, harness/targets/moving.py): the static run at speed 0, the
+analytic ``d_t p_*``, the paper law's feedforward (harness/targets/feedforward.py) and its
 tracking error against the derivation's prediction, the metrics against ``p_*(t)``, and
 the laws that are refused.
 """
@@ -9,19 +9,19 @@ import pytest
 from mcap.stream_reader import StreamReader
 
 from harness import api
-from harness.agents import interpolate
-from harness.build import build
-from harness.control import HeatControl, LangevinControl, PaperControl, paper_law
-from harness.densities import DEFAULT_TARGET, Target
-from harness.feedforward import NeumannPoisson, sg_flux, sg_velocity, sg_velocity_reference
+from harness.control.heat import HeatControl, LangevinControl
+from harness.control.paper import PaperControl, paper_law
+from harness.estimators.kde import KDE
+from harness.estimators.smoothing import smoothed_target
 from harness.fokker_planck import FokkerPlanck, rate
 from harness.grid import Grid
-from harness.kde import KDE
-from harness.moving import RotatingMixture, TargetPath
 from harness.records import ControlInput, Estimate, RobotEstimates
-from harness.run import run
-from harness.smoothing import smoothed_target
-from harness.velocity import VelocityField
+from harness.runs.build import build
+from harness.runs.run import run
+from harness.targets.densities import DEFAULT_TARGET, Target
+from harness.targets.feedforward import NeumannPoisson, sg_flux, sg_velocity, sg_velocity_reference
+from harness.targets.moving import RotatingMixture, TargetPath
+from harness.velocity import VelocityField, interpolate
 
 SHORT = [
     "grid.n=10",
@@ -287,7 +287,7 @@ def test_metrics_compare_with_the_target_at_the_steps_time():
 
 
 def test_swarm_floor_changes_little_along_a_turn():
-    # the floors are drawn from p_*(0) (harness.metrics.SwarmTruth): the mean finite-N
+    # the floors are drawn from p_*(0) (harness.observers.swarm.SwarmTruth): the mean finite-N
     # floor of swarm_l2 along a turn stays within the Monte-Carlo spread of its estimate
     grid = Grid.square(30)
     d = moving(0.01)
@@ -307,7 +307,7 @@ def test_swarm_floor_changes_little_along_a_turn():
 
 def test_robots_with_their_own_estimates_get_the_feedforward_too(rng):
     # every robot holding the same estimate moves as a robot that interpolates the
-    # broadcast field, feedforward included (harness.robot_law)
+    # broadcast field, feedforward included (harness.control.own_estimates)
     grid = Grid.square(16)
     path = TargetPath(Target.from_density(grid, moving(0.01)))
     t = 2.0

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from harness.build import build
 from harness.fokker_planck import NumericalError
-from harness.jobs import CheckCallback, checked
-from harness.observers import DivergenceGuard, RunContext, Status
-from harness.run import run
+from harness.observers.base import RunContext, Status
+from harness.observers.guard import DivergenceGuard
+from harness.runs.build import build
+from harness.runs.jobs import CheckCallback, checked
+from harness.runs.run import run
 
 ORDER = ["metrics", "swarm", "motion", "estimator", "guard", "live", "log", "progress"]
 
@@ -173,14 +174,14 @@ def test_a_logger_that_cannot_write_at_the_start_still_closes_its_log(
 ):
     import errno
 
-    import harness.mcap_log
+    import harness.observers.log
     from analysis.load import load_run
-    from harness.run import DiskFull
+    from harness.runs.run import DiskFull
 
     def full(self, p):
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(harness.mcap_log.McapLogger, "write_target", full)
+    monkeypatch.setattr(harness.observers.log.McapLogger, "write_target", full)
     with pytest.raises(DiskFull):
         run(compose(list(smoke)), tmp_path)
     log = load_run(tmp_path)
@@ -189,7 +190,7 @@ def test_a_logger_that_cannot_write_at_the_start_still_closes_its_log(
 
 
 def test_an_explicit_own_estimates_is_kept():
-    from harness.control import PaperControl
+    from harness.control.paper import PaperControl
 
     class Declared(PaperControl):
         own_estimates = True

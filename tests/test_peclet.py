@@ -35,7 +35,7 @@ def test_peclet_of_a_logged_run_is_the_drift_of_the_target(tmp_path, compose):
     """With alpha = 0 the paper's law is the drift sigma grad p_* / p_* alone, so the
     logged Peclet number is max(|d_x p_*| dx, |d_y p_*| dy) / p_* (sigma cancels),
     computed here from the target the app builds, not from the log."""
-    from harness.build import build
+    from harness.runs.build import build
 
     overrides = ["grid.n=12", "agents.n=100", "sim.t_final=0.04", "sim.dt=0.02",
                  "log.progress=off", "control.alpha=0", "log.field_every=1"]  # fmt: skip

@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 from mcap.stream_reader import StreamReader
 
 from analysis.load import LogError, LogWarning, load_run
-from harness.build import build
-from harness.checks import ConfigError
-from harness.run import run
+from harness.runs.build import build
+from harness.runs.checks import ConfigError
+from harness.runs.run import run
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["grid.n=8", "agents.n=50", "sim.t_final=0.06", "sim.dt=0.02", "log.progress=off"]
@@ -148,7 +148,7 @@ def test_valid_small_configs_complete(tmp_path_factory, compose, values):
 
 # ---------------------------------------------------------------- divergence guard
 def test_injected_divergence_ends_diverged_with_a_readable_log(tmp_path, monkeypatch, compose):
-    from harness import kde as kde_module
+    from harness.estimators import kde as kde_module
 
     original = kde_module.KDE.__call__
     calls = {"n": 0}
@@ -185,7 +185,7 @@ def test_huge_dt_past_validation_is_caught(tmp_path, compose, monkeypatch):
     )
     with pytest.raises(ConfigError, match="sampled-data"):
         build(cfg)
-    monkeypatch.setattr("harness.build.check_built", lambda *args: None)
+    monkeypatch.setattr("harness.runs.build.check_built", lambda *args: None)
     result = run(cfg, tmp_path)
     assert result.state in ("completed", "diverged")
     assert load_run(tmp_path).state == result.state

@@ -7,12 +7,15 @@ same seed as the look-ahead shrinks and the gain grows.
 import numpy as np
 import pytest
 
-from harness.agents import Swarm
 from harness.api import compose, run, simulate
-from harness.build import build
-from harness.double_integrators import DoubleIntegratorSwarm, double_integrator_step_reference
 from harness.grid import Grid
-from harness.unicycles import UnicycleSwarm, unicycle_step_reference
+from harness.plants.agents import Swarm
+from harness.plants.double_integrators import (
+    DoubleIntegratorSwarm,
+    double_integrator_step_reference,
+)
+from harness.plants.unicycles import UnicycleSwarm, unicycle_step_reference
+from harness.runs.build import build
 
 GRID = Grid(16, 16)
 BASE = ("grid.n=20", "agents.n=300", "estimator=exact", "log.progress=off", "log.floor_draws=2")
@@ -267,8 +270,7 @@ def test_unicycle_step_edge_cases_are_finite_and_match_the_reference():
 def test_unicycles_under_a_shared_field_take_one_pass_with_the_same_result():
     """move_field (interpolation inside the kernel) equals move under the field's
     interpolant at the robots, and returns the mean tracking error."""
-    from harness.agents import interpolate
-    from harness.velocity import VelocityField
+    from harness.velocity import VelocityField, interpolate
 
     rng = np.random.default_rng(8)
     field = VelocityField.from_centres(rng.uniform(-0.2, 0.2, (2, *GRID.shape)))

@@ -4,13 +4,14 @@ relies on against the analytic action of a mirrored Gaussian on cosine modes."""
 import numpy as np
 import pytest
 
-from harness.build import build
-from harness.checks import ConfigError
-from harness.control import PaperControl, grid_modes, sampled_data_dt_bound
-from harness.densities import Target, Uniform
+from harness.control.field import grid_modes, sampled_data_dt_bound
+from harness.control.paper import PaperControl
+from harness.estimators.smoothing import Smoother, transfer
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.smoothing import Smoother, transfer
+from harness.runs.build import build
+from harness.runs.checks import ConfigError
+from harness.targets.densities import Target, Uniform
 
 ALPHA, SIGMA = 0.003, 1e-9
 
@@ -43,7 +44,7 @@ def test_smoother_transform_form_equals_the_kernel_matrices_on_fine_grids(nx, ny
     matrices give the same field and gradient for a rough density, also with dx != dy
     (the transforms are used from TRANSFORM_MIN_SIDE cells per side on, where they are
     the faster form)."""
-    from harness.smoothing import ALIAS_TOLERANCE, TRANSFORM_MIN_SIDE
+    from harness.estimators.smoothing import ALIAS_TOLERANCE, TRANSFORM_MIN_SIDE
 
     g = Grid(nx, ny, 0.0, lx, 0.0, ly)
     sm = Smoother(g, 0.04)

@@ -3,18 +3,11 @@ import math
 import numpy as np
 import pytest
 
-from harness.densities import DEFAULT_TARGET, Box, GaussianMixture, Uniform
+from harness.estimators.kde import KDE
+from harness.estimators.smoothing import cell_masses, smoothed_density, smoothed_density_quadrature
 from harness.grid import Grid
-from harness.kde import KDE
-from harness.swarm_metrics import (
-    TargetMeasure,
-    cell_masses,
-    floors,
-    smoothed_density,
-    smoothed_density_quadrature,
-    swarm_l2,
-    swarm_w2,
-)
+from harness.observers.swarm_metrics import TargetMeasure, floors, swarm_l2, swarm_w2
+from harness.targets.densities import DEFAULT_TARGET, Box, GaussianMixture, Uniform
 
 H = 0.04
 GRID = Grid.square(30)
@@ -208,9 +201,9 @@ def test_emd_floor_band_small_n():
 def test_transport_target_measure_stops_at_64_cells_per_side(rng):
     """On grids finer than 64 per side ``swarm_w2`` compares with the same 64 x 64
     measure, so it does not depend on the simulation grid (and stays affordable)."""
-    from harness.densities import DEFAULT_TARGET, Target
     from harness.grid import Grid
-    from harness.metrics import SwarmTruth, _target_measure, measure_grid
+    from harness.observers.swarm import SwarmTruth, _target_measure, measure_grid
+    from harness.targets.densities import DEFAULT_TARGET, Target
 
     positions = rng.random((2, 300))
     values = []

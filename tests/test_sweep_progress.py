@@ -1,4 +1,4 @@
-"""The sweep's progress line (harness/sweep_progress.py): counts and the time left from
+"""The sweep's progress line (harness/runs/sweep_progress.py): counts and the time left from
 fake status files and a fake clock, against arithmetic done by hand; plain and terminal
 output; and two small real sweeps whose last line is read from their captured output.
 """
@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from analysis.configs import logged_config
 from analysis.load import load_run
 from harness.api import CONFIG_DIR
-from harness.sweep_progress import (
+from harness.runs.sweep_progress import (
     RUN_FILE,
     SweepMonitor,
     count_jobs,

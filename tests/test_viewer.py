@@ -39,11 +39,11 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from harness.densities import DEFAULT_TARGET
 from harness.grid import Grid
-from harness.live import LiveServer
-from harness.mcap_log import ALWAYS_NUMBERS, FIELD_TOPICS, METRIC_KEYS, METRICS_SCHEMA
-from harness.run import run as run_config
+from harness.observers.live import LiveServer
+from harness.observers.log import ALWAYS_NUMBERS, FIELD_TOPICS, METRIC_KEYS, METRICS_SCHEMA
+from harness.runs.run import run as run_config
+from harness.targets.densities import DEFAULT_TARGET
 
 websockets_sync = pytest.importorskip("websockets.sync.client")
 

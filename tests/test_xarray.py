@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from analysis.load import FIELD_UNITS, load_run, open_netcdf
-from harness.run import run
+from harness.runs.run import run
 
 TINY = [
     "grid.n=10",

@@ -1,6 +1,6 @@
 """Compiled Euler-Maruyama step of the robots (eq. ``Langevin equation``), O(N) in one
-pass; :meth:`harness.agents.Swarm.step_reference` (with
-:func:`harness.agents.interpolate` and :func:`harness.agents.reflect`) is the numpy
+pass; :meth:`harness.plants.agents.Swarm.step_reference` (with
+:func:`harness.velocity.interpolate` and :func:`harness.plants.agents.reflect`) is the numpy
 statement that tests compare against.
 """
 
@@ -89,7 +89,7 @@ def _speed_sums(
     """``(sum |v_k|^2, max |v_k|, sum |v_k|)`` over robots ``k`` of the bilinear
     interpolant of the cell-centre velocity ``vc`` ``(2, ny, nx)`` at ``pos`` ``(2, N)``
     (the interpolation of :func:`_euler_maruyama_step`; numpy statement:
-    :func:`harness.motion.speed_sums_reference`). Sums run in parallel, so their last
+    :func:`harness.observers.motion.speed_sums_reference`). Sums run in parallel, so their last
     bits depend on the thread count.
     """
     dx = (x1 - x0) / nx

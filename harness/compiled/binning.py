@@ -1,5 +1,5 @@
 """Compiled linear binning of the robots onto the KDE's fine nodes
-(:meth:`harness.kde.KDE.binned`); :meth:`harness.kde.KDE.bin_weights` is the numpy
+(:meth:`harness.estimators.kde.KDE.binned`); :meth:`harness.estimators.kde.KDE.bin_weights` is the numpy
 statement that tests compare against. O(N), parallel over fixed chunks of robots, with
 sums whose order does not depend on the thread count.
 """
@@ -92,7 +92,7 @@ def linear_binning(
     pos: np.ndarray, x0: float, x1: float, y0: float, y1: float, bx: int, by: int
 ) -> np.ndarray:
     """Linear-binning weights (compiled, parallel over fixed chunks); the numpy
-    reference is :meth:`harness.kde.KDE.bin_weights`.
+    reference is :meth:`harness.estimators.kde.KDE.bin_weights`.
     """
     n = pos.shape[1]
     chunk = bin_chunk_size(n, (bx + 1) * (by + 1))

@@ -1,5 +1,5 @@
 """Compiled paper's law (eq. ``modified density feedback law using estimates``) on the
-grid, centre and face values in one pass; :func:`harness.control.paper_law_reference`
+grid, centre and face values in one pass; :func:`harness.control.paper.paper_law_reference`
 is the numpy statement that tests compare against.
 """
 
@@ -24,8 +24,8 @@ def paper_velocity(
     dy: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - compiled
     """Centre and face values of the paper's law (eq. ``modified density feedback law
-    using estimates``; :func:`harness.control.paper_law` holds the equation and its
-    discretisation, :func:`harness.control.paper_law_reference` the numpy statement) in
+    using estimates``; :func:`harness.control.paper.paper_law` holds the equation and its
+    discretisation, :func:`harness.control.paper.paper_law_reference` the numpy statement) in
     one pass,
     each value by the reference's operations in the reference's order (the same bits):
 

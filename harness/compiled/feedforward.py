@@ -1,6 +1,6 @@
 """Compiled inversion of the Scharfetter-Gummel face flux, face by face: the velocity
-whose flux of ``(p_L, p_R)`` is a given flux (:func:`harness.feedforward.sg_velocity`
-holds the equation and the iteration; :func:`harness.feedforward.sg_velocity_reference`
+whose flux of ``(p_L, p_R)`` is a given flux (:func:`harness.targets.feedforward.sg_velocity`
+holds the equation and the iteration; :func:`harness.targets.feedforward.sg_velocity_reference`
 is the numpy statement that tests compare against).
 """
 

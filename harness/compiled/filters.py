@@ -1,6 +1,6 @@
-"""Compiled loops of the fast density filters (:mod:`harness.filters.local`): the
+"""Compiled loops of the fast density filters (:mod:`harness.estimators.filters.local`): the
 variance prediction (``(F1 o F1) d``, and ``diag(F1 S R S F1^T)`` with the band's
-correlations), the band Gram matrix of :class:`~harness.filters.local.BandPoisson`,
+correlations), the band Gram matrix of :class:`~harness.estimators.filters.local.BandPoisson`,
 and the small grids' gradient update (matrix-free ``G^T diag(c) G``, its pinned band
 assembled for the factor, banded Cholesky solves by columns, the conjugate-gradient
 iteration). Each has a numpy, sparse or LAPACK statement that tests compare against.
@@ -23,7 +23,7 @@ def _band_gram(
     wy: np.ndarray,
     out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """The Gram matrix of :class:`harness.filters.local.BandPoisson`, its upper
+    """The Gram matrix of :class:`harness.estimators.filters.local.BandPoisson`, its upper
     triangle ``out[i, j]``, ``j >= i`` (the strict lower triangle is not written), one
     row of pairs per (parallel) iteration, reading the extended transforms ``ex``,
     ``ey`` (``2 n_y x 2 n_x``) at the sum and difference frequencies:
@@ -33,7 +33,7 @@ def _band_gram(
 
     ``da = |a_i - a_j|``, ``sa = a_i + a_j`` (likewise ``b``). Each entry is computed
     on its own, so the result does not depend on the thread count. The numpy statement
-    is :meth:`~harness.filters.local.BandPoisson.gram_reference`.
+    is :meth:`~harness.estimators.filters.local.BandPoisson.gram_reference`.
     """
     k = a.size
     for i in numba.prange(k):
@@ -61,7 +61,7 @@ def squared_transition(
     entries) and the columns of ``d`` ``(M, c)``: row ``i`` is ``sum_j (F1_ij)^2 d_j``,
     with ``F1_ii = 1 + dt a_ii`` and ``F1_ij = dt a_ij`` off the diagonal, in one pass
     over the matrix (a row without a stored diagonal keeps ``d_i``). The numpy statement
-    is :func:`harness.filters.local.squared_transition_reference`.
+    is :func:`harness.estimators.filters.local.squared_transition_reference`.
     """
     m, c = d.shape
     out = d.copy()  # the identity's part; a stored diagonal adds (1 + f)^2 - 1
@@ -282,7 +282,7 @@ def weighted_poisson_pcg(
     :func:`band_rows` and diagonal reciprocals (:func:`_pinned_band_preconditioner`);
     returns ``(x, iterations, converged)``.
 
-    The iteration of :func:`harness.filters.local._pcg` (the reference, with a sparse
+    The iteration of :func:`harness.estimators.filters.local._pcg` (the reference, with a sparse
     LU), statement for statement: converged when ``||r|| <= tol ||b||``, or, when the
     iteration stops on ``r^T z <= 0`` or ``d^T A d <= 0``, when the residual off the
     constants is that small (the constants' part of ``b`` cannot be reduced).
@@ -409,11 +409,11 @@ def band_transition_variance(
 
     over the row's five entries (centre, west, east, south, north): five squares and
     ten pairs, whose correlations ``rho[k, o, j]`` are those of cell ``j`` with ``j +
-    BAND_OFFSETS[o]`` (:data:`harness.filters.common.BAND_OFFSETS`: (0, 1), (1, 0),
+    BAND_OFFSETS[o]`` (:data:`harness.estimators.filters.common.BAND_OFFSETS`: (0, 1), (1, 0),
     (0, 2), (2, 0), (1, 1), (1, -1) as ``(dy, dx)``), read at the pair's lower cell.
     Compiled, rows in parallel from ``PARALLEL_MIN_CELLS`` cells on (each row's
     arithmetic is the same either way); with ``rho = 0`` it is
-    :func:`squared_transition`; :func:`harness.filters.local.transition_variance_reference`
+    :func:`squared_transition`; :func:`harness.estimators.filters.local.transition_variance_reference`
     is the dense statement.
 
     Raises:

@@ -1,10 +1,10 @@
 """Compiled steps of the robots that are not ideal integrators: unicycles
-(:mod:`harness.unicycles`) and double integrators (:mod:`harness.double_integrators`),
+(:mod:`harness.plants.unicycles`) and double integrators (:mod:`harness.plants.double_integrators`),
 and the bilinear interpolation of a held field at the robots. O(N), one pass each; the
 numpy statements the tests compare against are
-:func:`harness.unicycles.unicycle_step_reference`,
-:func:`harness.double_integrators.double_integrator_step_reference` and
-:func:`harness.agents.interpolate`.
+:func:`harness.plants.unicycles.unicycle_step_reference`,
+:func:`harness.plants.double_integrators.double_integrator_step_reference` and
+:func:`harness.velocity.interpolate`.
 
 Robots are independent and run in parallel (``prange``) from
 :data:`harness.compiled.agents.PARALLEL_MIN_ROBOTS` on; each robot's arithmetic is the
@@ -35,7 +35,7 @@ def _interpolate_robots(
 ) -> None:
     """``out[:, k]`` = the bilinear interpolant of the cell-centre velocity ``vc``
     ``(2, ny, nx)`` at ``pos[:, k]`` (``(2, N)``), extended by the nearest centre values
-    beyond the outermost centres (as :func:`harness.agents.interpolate`).
+    beyond the outermost centres (as :func:`harness.velocity.interpolate`).
     """
     dx = (x1 - x0) / nx
     dy = (y1 - y0) / ny
@@ -77,7 +77,7 @@ def _unicycle_step(
     scale: float,
 ) -> float:
     """In place, one hold of ``dt`` for every unicycle (the equations are in
-    :mod:`harness.unicycles`): the exact hold of the feedback-linearising law under the
+    :mod:`harness.plants.unicycles`): the exact hold of the feedback-linearising law under the
     commanded velocity ``v[:, k]`` when it stays within the limits, else one arc of the
     clipped speeds; the scaled noise; the walls. ``heading`` holds the unit vectors
     ``e(theta)`` ``(2, N)``; ``applied[:, k]`` gets the displacement over ``dt``. The
@@ -225,7 +225,7 @@ def _double_integrator_step(
     scale: float,
 ) -> None:
     """In place, one hold of ``dt`` for every double integrator (the equations are in
-    :mod:`harness.double_integrators`): the exact solution of the saturated velocity
+    :mod:`harness.plants.double_integrators`): the exact solution of the saturated velocity
     loop, the scaled noise, the walls; ``applied[:, k]`` gets the displacement over
     ``dt``.
     """

@@ -1,0 +1,22 @@
+"""The decentralised loop: every robot estimates the swarm's density and moves on its own.
+
+The centralised loop forms one KDE of every position. But the KDE is a mean over robots,
+``p_KDE = (1/N) sum_i phi_i`` with ``phi_i`` robot ``i``'s own kernel, so each robot can
+*track* it from its own kernel and messages from its neighbours (Zheng and Lin, arXiv
+2009.05366 / 2106.05318), run the project's fast density filter on what it tracks, and
+move by the paper's law evaluated on its own estimate (a field law's cell values at its
+own position, :func:`harness.control.own_estimates.own_velocities`; the robots' step is
+:meth:`harness.plants.agents.Swarm.step_robots`). One idea per module:
+
+* :mod:`~harness.estimators.distributed.graph`: the communication graph, its Laplacian and
+  algebraic connectivity;
+* :mod:`~harness.estimators.distributed.robot_kde`: each robot's KDE kernel on the grid;
+* :mod:`~harness.estimators.distributed.consensus`: dynamic average consensus (derivation,
+  invariant, error bound, gain) and the messages it costs;
+* :mod:`~harness.estimators.distributed.filters`: the per-robot fast density filters, built from
+  :mod:`~harness.estimators.distributed.density` (the density step, compiled over robots) and
+  :mod:`~harness.estimators.distributed.row_solver` (one sparse LU over robots);
+* :mod:`~harness.estimators.distributed.metrics`: the estimates' spread and the network figures;
+* :mod:`~harness.estimators.distributed.estimator`: the assembly, and ``estimator=distributed``
+  (:class:`DistributedEstimator`).
+"""

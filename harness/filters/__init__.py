@@ -1,8 +1,0 @@
-"""The paper's density and gradient filters on the grid (eqs. ``density filter``,
-``density Riccati``, ``gradient filter``, ``gradient Riccati``): a dense reference
-form (:mod:`.reference`) and a fast form with local covariances (:mod:`.local`).
-"""
-
-from harness.filters.common import FilterSettings, MeasurementModel
-
-__all__ = ["FilterSettings", "MeasurementModel"]

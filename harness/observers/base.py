@@ -1,0 +1,84 @@
+"""Observers: what watches a run's steps and never steers it.
+
+The run (:func:`harness.runs.run.run`) is a straight line: build, initialise the observers,
+step the loop and hand every step's record to each observer in its config order,
+finalise. Each observer is a component of the config group ``observers``
+(``conf/observers/``: one YAML per observer, ``_target_`` plus its own parameters, its
+cadence among them), composed into one dict by ``conf/observers/default.yaml``:
+
+    metrics   field metrics, the paper's errors (:class:`harness.observers.metrics.FieldMetrics`)
+    swarm     where the robots are (:class:`harness.observers.swarm.SwarmTruth`)
+    estimator the numbers the estimator publishes (:class:`EstimatorMetrics`)
+    guard     the divergence guard (:class:`DivergenceGuard`)
+    live      the live view over Foxglove's WebSocket protocol (:class:`harness.observers.live.LiveView`)
+    log       the MCAP log (:class:`harness.observers.log.McapLogger`)
+    progress  the progress bar (:class:`ProgressBar`)
+
+An observer implements :class:`Observer`: ``initialize(run)`` before the loop starts,
+``handle(record, values)`` after the start and after every step, ``finalize(status)``
+at the end, whatever happened. ``values`` is the step's dict of numbers, which the
+observers before fill and the ones after read: the metric observers add their keys, the
+guard checks them, the logger writes them. Observers that compute come before those that
+show; those that only compute say so (``computes = True``), and an in-memory
+simulation (:func:`harness.api.simulate`) runs just them. Run-time arguments an
+observer's constructor may name (the builder passes the ones
+it names): ``grid``, ``target``, ``control``, ``plant``, ``steps`` (the run's last
+step) and ``identity`` (:class:`harness.runs.identity.RunIdentity`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
+
+from harness.records import StepRecord
+
+
+@dataclass
+class RunContext:
+    """What the observers share during a run.
+
+    Attributes:
+        out_dir: The run directory.
+        theory: The ``theory`` record (string values), which observers fill in
+            ``initialize`` and at the start record; the logger writes it with its first
+            step.
+        publishers: Live servers the logger hands every message it writes.
+        exclusive: Whether the log must be a new file (created exclusively: an
+            existing one, even one another process created a moment before, is refused
+            by the open itself); False replaces it.
+    """
+
+    out_dir: Path
+    theory: dict[str, str] = field(default_factory=dict)
+    publishers: list[Any] = field(default_factory=list)
+    exclusive: bool = True
+
+
+@dataclass(frozen=True)
+class Status:
+    """How a run ended: ``state`` (``completed`` | ``aborted`` | ``diverged``), the
+    ``reason`` and the run's wall time ``wall_s`` (s).
+    """
+
+    state: str
+    reason: str
+    wall_s: float
+
+
+@runtime_checkable
+class Observer(Protocol):
+    """Sees each step of a run; never steers it (module docstring)."""
+
+    def initialize(self, run: RunContext) -> None:
+        """Before the loop starts (open files, start servers, compute fixed numbers)."""
+        ...
+
+    def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
+        """After the start (``rec.step == 0``) and after every step."""
+        ...
+
+    def finalize(self, status: Status) -> None:
+        """At the end, whatever happened (also after an exception)."""
+        ...

@@ -1,0 +1,313 @@
+"""Swarm-level metrics from robot positions, independent of every estimator.
+
+Three quantities say where the robots are, whatever the filters believe:
+
+* the smoothed target ``K_h * p_*`` on the grid (:func:`harness.estimators.smoothing.smoothed_density`), with the
+  KDE's own kernel, wall images included (exact for a density with a closed form);
+* ``swarm_l2 = ||K_h * mu_N - K_h * p_*||`` (:func:`swarm_l2`, 1 / length), with
+  ``mu_N = (1/N) sum_k delta_{X_k}`` the robots' empirical measure and ``K_h * mu_N``
+  the KDE of :mod:`harness.estimators.kde`;
+* ``swarm_w2``, an optimal-transport distance between the robots and ``p_*``
+  (:func:`swarm_w2`, length);
+
+and :func:`floors` gives the finite-N floor of both: their distribution when the N
+robots are drawn independently from ``p_*`` (Monte Carlo, seeded).
+
+The kernel. :class:`harness.estimators.kde.KDE` evaluates, at a cell centre ``c = (c_x, c_y)``,
+
+    K(c, X) = k_x(c_x, X_x) k_y(c_y, X_y),
+    k(c, X) = g_h(c - X) + g_h(c - (2 lo - X)) + g_h(c - (2 hi - X)),
+
+with ``g_h(z) = exp(-z^2 / 2h^2) / (sqrt(2 pi) h)`` and the two images per axis
+(the corner images come from the product). It skips the image of a robot farther
+than ``9 h`` from a wall, which changes ``k`` by less than ``3e-18 / (sqrt(2 pi) h)``;
+the closed forms of :mod:`harness.targets.densities` keep every image. The expectation of the
+KDE of N independent samples of ``p`` is then ``(K_h * p)(c) = int_Omega p(x) K(c, x)
+dx``.
+
+``K_h * p`` of a density and its cell masses are
+:func:`harness.estimators.smoothing.smoothed_density` and
+:func:`harness.estimators.smoothing.cell_masses`.
+
+Which K_h * p the loop sees. With more than ``exact_max_robots`` robots the KDE
+bins them linearly onto a grid ``bin_factor`` times finer (at most the kernel's
+resolution needs, :func:`harness.estimators.kde.binning_nodes`) before smoothing; its expectation is
+then ``K_h * p`` plus the binning bias, ``O((s / h)^2)`` for node spacing ``s``
+relative (about 1e-3 for the paper's settings, ``~1e-3`` in ``swarm_l2`` against a
+floor of 0.03 at ``N = 65536``). The floors use the same KDE, so they include it.
+
+Cost per call on the 30 x 30 grid (2 shared cores, BLAS on one thread; indicative,
+the host was loaded 4x while measuring: ``python -m benchmarks.debias_check --costs``):
+``swarm_l2`` 0.2-0.5 ms for N = 1024 to 65536; ``swarm_w2`` exact EMD 0.12 s
+(N = 1024) and 0.55 s (N = 4096) on a quiet host, 0.56 s and 2.6 s loaded; sliced
+(64 directions, target on the 4x refined grid) 0.16, 0.19, 0.38, 0.82 s loaded at
+N = 1024, 4096, 16384, 65536. ``swarm_l2`` fits every ``log.positions_every = 10``
+steps; ``swarm_w2`` does not (a 10^4-step run would spend 10^3 calls): log it every
+100 steps (1 s of simulated time, far below the loop's 34 s time constant).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import ot
+from threadpoolctl import threadpool_limits
+
+from harness.estimators.kde import KDE
+from harness.estimators.smoothing import cell_masses
+from harness.grid import Grid
+from harness.targets.densities import Density
+
+EMD_MAX_ROBOTS = 4096
+"""``swarm_w2`` uses the exact EMD up to this many robots and the sliced distance above
+(see :func:`swarm_w2`)."""
+
+
+N_PROJECTIONS = 64
+"""Directions of the sliced distance (equispaced on the half circle)."""
+
+
+@dataclass(frozen=True)
+class TargetMeasure:
+    """``p_*`` as a discrete measure for transport: the exact mass of each cell of a
+    quantisation grid, placed at the cell's centre.
+
+    Moving each cell's mass to its centre costs at most ``W2 <= (dx^2 + dy^2)^(1/2) /
+    sqrt(12)`` (0.0136 for a 30 x 30 grid on the unit square): ``swarm_w2`` of robots
+    drawn from ``p_*`` includes it, and so does its floor.
+
+    Attributes:
+        points: ``(M, 2)`` cell centres (length).
+        weights: ``(M,)`` cell masses, summing to 1 (cells of zero mass dropped).
+    """
+
+    points: np.ndarray
+    weights: np.ndarray
+
+    @classmethod
+    def from_density(cls, density: Density, grid: Grid, refine: int = 1) -> TargetMeasure:
+        """Cell masses of ``density`` on ``grid`` refined ``refine`` times per axis."""
+        if refine < 1:
+            raise ValueError(f"refine must be >= 1, got {refine}")
+        q = Grid(grid.nx * refine, grid.ny * refine, grid.x0, grid.x1, grid.y0, grid.y1)
+        m = cell_masses(density, q).ravel()
+        x, y = q.mesh
+        keep = m > 0
+        pts = np.column_stack([x.ravel()[keep], y.ravel()[keep]])
+        return cls(pts, m[keep] / m[keep].sum())
+
+
+def swarm_l2(positions: np.ndarray, kde: KDE, smoothed_target: np.ndarray, grid: Grid) -> float:
+    """``||K_h * mu_N - K_h * p_*||`` (1 / length), the discrete L2 norm of :meth:`Grid.l2`.
+
+    Args:
+        positions: Robots, shape ``(2, N)`` (length).
+        kde: The loop's KDE (its bandwidth, images and evaluation method).
+        smoothed_target: ``K_h * p_*`` on the grid, from :func:`smoothed_density`.
+        grid: The grid.
+    """
+    p, _ = kde(positions)
+    return grid.l2(p - smoothed_target)
+
+
+def w2_method(n_robots: int, emd_max: int = EMD_MAX_ROBOTS) -> str:
+    """``"emd"`` up to ``emd_max`` robots, ``"sliced"`` above."""
+    return "emd" if n_robots <= emd_max else "sliced"
+
+
+def _projections(n: int) -> np.ndarray:
+    """``(2, n)`` unit directions at angles ``pi (j + 1/2) / n``, ``j < n``."""
+    theta = np.pi * (np.arange(n) + 0.5) / n
+    return np.vstack([np.cos(theta), np.sin(theta)])
+
+
+def swarm_w2(
+    positions: np.ndarray,
+    target: TargetMeasure,
+    method: str = "auto",
+    n_projections: int = N_PROJECTIONS,
+    emd_max: int = EMD_MAX_ROBOTS,
+) -> float:
+    """Optimal-transport distance between the robots and ``p_*`` (length).
+
+    Compares the empirical measure ``mu_N`` (weight ``1/N`` at each robot) with the
+    discrete target ``nu = sum_j m_j delta_{c_j}`` of :class:`TargetMeasure` (exact cell
+    masses at cell centres), for the squared Euclidean cost:
+
+    * ``emd``: ``W2(mu_N, nu) = (min_pi sum pi_kj |X_k - c_j|^2)^(1/2)`` by the network
+      simplex (``ot.emd2``); memory ``8 N M`` bytes, so for ``N <= emd_max``;
+    * ``sliced``: ``SW2(mu_N, nu) = ((1/P) sum_j W2^2(theta_j . mu_N, theta_j . nu))^(1/2)``
+      over ``P = n_projections`` directions ``theta_j`` equispaced on the half circle
+      (deterministic, no random projections), each a sorted 1-D transport
+      (:func:`sliced_w2`; ``sliced_pot`` is the same through
+      ``ot.sliced_wasserstein_distance``, the reference). ``SW2 <= W2``; for a
+      translation by ``d`` it is ``|d| / sqrt(2)`` (``W2 = |d|``). ``O(P (N + M) log)``.
+    * ``auto``: :func:`w2_method`.
+
+    The two are different distances: compare values (and their floors, which use the
+    same method) only within one method.
+
+    Args:
+        positions: Robots, shape ``(2, N)`` (length).
+        target: The discrete target measure.
+        method: ``auto``, ``emd``, ``sliced`` (:func:`sliced_w2`) or ``sliced_pot`` (the
+            same distance by ``ot.sliced_wasserstein_distance``, the reference).
+        n_projections: ``P`` for ``sliced``.
+        emd_max: Threshold of ``auto``.
+    """
+    if method not in W2_METHODS:
+        raise ValueError(f"swarm_w2 method must be auto, emd, sliced or sliced_pot, got {method!r}")
+    positions = np.asarray(positions, dtype=float)
+    return W2_METHODS[method](positions, target, n_projections, emd_max)
+
+
+def _w2_auto(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """The method of :func:`w2_method` for this many robots."""
+    chosen = W2_METHODS[w2_method(positions.shape[1], emd_max)]
+    return chosen(positions, target, n_projections, emd_max)
+
+
+def _w2_emd(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """Exact ``W2`` by the network simplex (``ot.emd2``)."""
+    n = positions.shape[1]
+    xs = np.ascontiguousarray(positions.T)
+    a = np.full(n, 1.0 / n)
+    cost = ot.dist(xs, target.points, metric="sqeuclidean")
+    value = ot.emd2(a, target.weights, cost, numItermax=10_000_000, check_marginals=False)
+    return float(np.sqrt(max(float(value), 0.0)))
+
+
+def _w2_sliced(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """:func:`sliced_w2`."""
+    return sliced_w2(positions, target, n_projections)
+
+
+def _w2_sliced_pot(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
+) -> float:
+    """The sliced distance by ``ot.sliced_wasserstein_distance`` (the reference)."""
+    n = positions.shape[1]
+    xs = np.ascontiguousarray(positions.T)
+    a = np.full(n, 1.0 / n)
+    return float(
+        ot.sliced_wasserstein_distance(
+            xs, target.points, a, target.weights, p=2, projections=_projections(n_projections)
+        )
+    )
+
+
+W2_METHODS: dict[str, Callable[[np.ndarray, TargetMeasure, int, int], float]] = {
+    "auto": _w2_auto,
+    "emd": _w2_emd,
+    "sliced": _w2_sliced,
+    "sliced_pot": _w2_sliced_pot,
+}
+"""The transport methods of :func:`swarm_w2` by name; each takes ``(positions, target,
+n_projections, emd_max)``."""
+
+
+def sliced_w2(
+    positions: np.ndarray, target: TargetMeasure, n_projections: int = N_PROJECTIONS
+) -> float:
+    """Sliced ``SW2(mu_N, nu)`` (length) by prefix integrals of the target's quantile function.
+
+    For a direction ``theta`` let ``x_(1) <= ... <= x_(N)`` be the sorted projections of
+    the robots and ``G^-1`` the quantile function of the projected target (atoms
+    ``y_j = theta . c_j`` of mass ``m_j``). The monotone coupling gives
+
+        W2^2 = (1/N) sum_k x_(k)^2 + sum_j m_j y_j^2 - 2 sum_k x_(k) [I(k/N) - I((k-1)/N)],
+
+    with ``I(t) = int_0^t G^-1``, piecewise linear between the target's cumulative
+    masses (``np.interp``). Cost ``O(P N log N)`` for the sorts, against the merge of
+    ``N + M`` breakpoints per direction in ``ot.wasserstein_1d``.
+    """
+    x = np.asarray(positions, dtype=float)
+    n = x.shape[1]
+    dirs = _projections(n_projections)
+    # elementwise products, not BLAS: a threaded GEMM of this shape stalls on a busy host
+    xp = np.sort(np.outer(dirs[0], x[0]) + np.outer(dirs[1], x[1]), axis=1)
+    yp = np.outer(dirs[0], target.points[:, 0]) + np.outer(dirs[1], target.points[:, 1])
+    t_grid = np.arange(n + 1) / n
+    total = 0.0
+    for j in range(n_projections):
+        order = np.argsort(yp[j], kind="stable")
+        y = yp[j, order]
+        m = target.weights[order]
+        cum = np.concatenate([[0.0], np.cumsum(m)])
+        cum /= cum[-1]
+        prefix = np.concatenate([[0.0], np.cumsum(m * y)])
+        dint = np.diff(np.interp(t_grid, cum, prefix))
+        w2sq = np.mean(xp[j] ** 2) + np.dot(m, y**2) - 2.0 * np.dot(xp[j], dint)
+        total += max(w2sq, 0.0)
+    return float(np.sqrt(total / n_projections))
+
+
+@dataclass(frozen=True)
+class Band:
+    """Monte-Carlo distribution of a distance: mean, 2.5 and 97.5 percentiles, draws."""
+
+    mean: float
+    lo: float
+    hi: float
+    draws: int
+
+    def as_dict(self) -> dict[str, float | int]:
+        """Plain mapping for the log's metadata."""
+        return {"mean": self.mean, "lo": self.lo, "hi": self.hi, "draws": self.draws}
+
+
+def _band(values: np.ndarray) -> Band:
+    lo, hi = np.percentile(values, [2.5, 97.5])
+    return Band(float(values.mean()), float(lo), float(hi), int(values.size))
+
+
+def floors(
+    density: Density,
+    grid: Grid,
+    kde: KDE,
+    smoothed_target: np.ndarray,
+    target: TargetMeasure,
+    n_robots: int,
+    rng: np.random.Generator,
+    draws: int = 100,
+    w2: str = "auto",
+    n_projections: int = N_PROJECTIONS,
+) -> dict[str, Band]:
+    """Finite-N floors: ``swarm_l2`` and ``swarm_w2`` of N robots drawn from ``p_*``.
+
+    Each of ``draws`` Monte-Carlo draws places ``n_robots`` independent samples of
+    ``density`` (``density.sample`` with ``rng``) and evaluates both distances exactly
+    as for the swarm (same KDE, same target measure, same transport method for this
+    N). A swarm distributed as ``p_*`` lands inside ``[lo, hi]`` with probability 0.95.
+    For large N, ``E swarm_l2^2 ~ int k K_h * p_* = 1 / (4 pi N h^2)`` (notes section 3).
+
+    Args:
+        density: ``p_*``.
+        grid, kde, smoothed_target, target: As for :func:`swarm_l2` and :func:`swarm_w2`.
+        n_robots: N.
+        rng: Seeded generator (the only randomness).
+        draws: Monte-Carlo count.
+        w2: Transport method (``auto``: :func:`w2_method` of ``n_robots``).
+        n_projections: For the sliced method.
+
+    Returns:
+        ``{"swarm_l2": Band, "swarm_w2": Band}``.
+    """
+    if draws < 2:
+        raise ValueError(f"floors need at least 2 draws, got {draws}")
+    l2 = np.empty(draws)
+    w = np.empty(draws)
+    with threadpool_limits(1):  # small BLAS calls on many threads stall on a busy host
+        for i in range(draws):
+            x = density.sample(n_robots, grid, rng)
+            l2[i] = swarm_l2(x, kde, smoothed_target, grid)
+            w[i] = swarm_w2(x, target, w2, n_projections)
+    return {"swarm_l2": _band(l2), "swarm_w2": _band(w)}

@@ -1,0 +1,472 @@
+"""Robots: Euler-Maruyama for the Langevin equation with reflecting walls.
+
+Each robot follows (eq. ``Langevin equation``)
+
+    dX = v(X, t) dt + sqrt(2 sigma) dB,
+
+integrated with the Euler-Maruyama step
+
+    X_{n+1} = R( X_n + v(X_n, t_n) dt + sqrt(2 sigma dt) xi_n ),   xi_n ~ N(0, I_2),
+
+where ``v(X_n)`` is the bilinear interpolant of the cell-centre velocities (the
+value of the nearest centre row/column beyond the outermost centres) and ``R``
+reflects a coordinate that left the interval ``[lo, hi]`` back across the wall,
+``x -> 2 lo - x`` or ``x -> 2 hi - x`` (exact for the reflected Brownian motion's
+law when one step crosses at most one wall; a final clip guards against steps
+longer than the domain). Positions are stored as an array of shape ``(2, N)``
+(row 0: x, row 1: y), in length units. All randomness comes from the
+``numpy.random.Generator`` passed in.
+
+Parallelism. The compiled step runs the robots in parallel (numba ``prange``); each
+robot's arithmetic does not depend on the thread count. The Gaussian increments are
+drawn by numpy outside it: for fewer than ``PARALLEL_DRAW_MIN`` values in one call
+of ``rng.standard_normal`` (the stream of the serial harness); above, in fixed
+chunks of ``DRAW_CHUNK`` values, chunk ``c`` from a generator on the ``c``-th child
+of ``rng``'s ``SeedSequence`` (independent streams, numpy's own construction, as
+``rng.spawn`` makes them) with numpy's ``SFC64`` bit generator, filled by a thread
+pool. Which numbers land where is fixed by ``N`` and ``rng``, never by the number
+of threads. Why ``SFC64`` for the chunks: numpy's normals from it are faster than
+from the default ``PCG64`` (2e6 values on two threads: 8.3 to 10.3 ms against 12.5
+to 12.8 ms, measured), and at ``N = 1e6`` the draws are most of an agent step; it is
+one of numpy's own generators, with the same statistical standing (it passes the
+usual test batteries). Swarms below ``PARALLEL_DRAW_MIN / 2`` robots, every study
+preset among them, draw from ``rng`` itself, as before.
+
+
+Plants (config group ``plant``): what moves under the held velocity and what it
+lets the estimator measure.
+
+* :class:`Agents` (``plant=agents``): ``N`` robots by eq. ``Langevin equation``
+  (:class:`harness.plants.agents.Swarm`), measured by their KDE (:class:`harness.estimators.kde.KDE`);
+  alongside, the loop's deterministic ``N -> infinity`` limit ``p_inf``: the
+  Fokker-Planck density (eq. ``FP equation``) started from ``p_0`` and moved by the
+  same control law fed the estimates a noise-free KDE of ``p_inf`` would give,
+  ``K_h * p_inf`` and its gradient (:class:`harness.estimators.smoothing.Smoother`).
+* :class:`MeanField` (``plant=meanfield``): no robots; the state is the Fokker-Planck
+  density ``p`` and the measurement is ``p`` plus seeded Gaussian noise with the KDE's
+  own variances ``k p`` and ``k_g p`` per cell (notes section 3), for the swarm size and
+  bandwidth configured.
+
+Both implement :class:`harness.protocols.Plant` and share the run's
+:class:`~harness.fokker_planck.FokkerPlanck` model. Both need a law with a velocity
+field: the mean-field plant moves by it, and the agents plant's limit ``p_inf`` is the
+law's field of ``p_inf``'s own noise-free KDE (the Fokker-Planck density under the
+*applied* velocity would be no reference: that velocity is computed from the swarm's own
+fluctuations, so such a density drifts away from the swarm).
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from harness.compiled.agents import euler_maruyama_step
+from harness.estimators.kde import KDE
+from harness.estimators.smoothing import Smoother
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.parameters import flag, integer, number, require
+from harness.plants.link import command_link
+from harness.protocols import (
+    Control,
+    MemoryEstimate,
+    default_memory,
+    needs_robots,
+    require_field,
+)
+from harness.records import Command, ControlInput, Estimate, Measurement
+from harness.targets.densities import Density
+from harness.velocity import VelocityField, interpolate
+
+DRAW_CHUNK = 1 << 17
+"""Gaussian values drawn per child generator on the parallel path."""
+
+
+PARALLEL_DRAW_MIN = 1 << 18
+"""Fewest values (``2 N``) drawn on the parallel path; below, one serial draw."""
+
+
+_POOL: ThreadPoolExecutor | None = None
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=os.cpu_count() or 1)
+    return _POOL
+
+
+def draw_normals(rng: np.random.Generator, out: np.ndarray) -> np.ndarray:
+    """Fill ``out`` with independent standard normal values from ``rng``.
+
+    Fewer than ``PARALLEL_DRAW_MIN`` values: ``rng.standard_normal(out=out)``.
+    Otherwise chunk ``c`` (values ``c DRAW_CHUNK`` onwards of the flattened ``out``)
+    comes from an ``SFC64`` generator on the ``c``-th of ``chunks`` children spawned
+    from ``rng``'s ``SeedSequence`` (the children ``rng.spawn`` would use); numpy
+    releases the GIL while filling, so the chunks fill in parallel, and the values do
+    not depend on the number of threads.
+
+    Raises:
+        ValueError: on the parallel path, ``rng`` has no ``SeedSequence`` to spawn from.
+    """
+    flat = out.reshape(-1)
+    if flat.size < PARALLEL_DRAW_MIN:
+        rng.standard_normal(out=flat)
+        return out
+    chunks = (flat.size + DRAW_CHUNK - 1) // DRAW_CHUNK
+    seed_seq = rng.bit_generator.seed_seq
+    if not isinstance(seed_seq, np.random.SeedSequence):
+        raise ValueError("draw_normals needs a generator made from a SeedSequence (seeded)")
+    children = [np.random.Generator(np.random.SFC64(s)) for s in seed_seq.spawn(chunks)]
+
+    def fill(c: int) -> None:
+        children[c].standard_normal(out=flat[c * DRAW_CHUNK : (c + 1) * DRAW_CHUNK])
+
+    list(_pool().map(fill, range(chunks)))
+    return out
+
+
+def reflect(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Reflect coordinates across the walls ``lo`` and ``hi`` in place, then clip."""
+    np.copyto(x, 2.0 * lo - x, where=x < lo)
+    np.copyto(x, 2.0 * hi - x, where=x > hi)
+    np.clip(x, lo, hi, out=x)
+    return x
+
+
+@dataclass
+class Swarm:
+    """``N`` robots in the grid's rectangle.
+
+    Args:
+        grid: Grid giving the domain and the velocity field's layout.
+        positions: Initial positions, shape ``(2, N)``, inside the domain.
+        sigma: Noise intensity ``sigma >= 0`` (length^2 / time).
+    """
+
+    grid: Grid
+    positions: np.ndarray
+    sigma: float
+    _noise: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.positions = np.array(self.positions, dtype=float)
+        if self.positions.ndim != 2 or self.positions.shape[0] != 2 or self.positions.shape[1] < 1:
+            raise ValueError(
+                f"positions must have shape (2, N) with N >= 1, got {self.positions.shape}"
+            )
+        if not self.grid.contains(self.positions[0], self.positions[1]).all():
+            raise ValueError("initial positions must lie inside the domain")
+        if not (np.isfinite(self.sigma) and self.sigma >= 0):
+            raise ValueError(f"sigma must be finite and >= 0, got {self.sigma}")
+        self._noise = np.empty_like(self.positions)
+
+    @property
+    def n(self) -> int:
+        """Number of robots ``N``."""
+        return self.positions.shape[1]
+
+    def step(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
+        """Advance every robot by one Euler-Maruyama step of length ``dt`` under
+        ``v`` (eq. ``Langevin equation``) and return the new positions.
+
+        The Gaussian increments come from ``rng`` (:func:`draw_normals`); the
+        scaling by ``sqrt(2 sigma dt)``, interpolation, update and reflection run in
+        one compiled parallel pass (:func:`harness.compiled.agents.euler_maruyama_step`),
+        which :meth:`step_reference` states in plain numpy.
+        """
+        g = self.grid
+        draw_normals(rng, self._noise)
+        centres = np.ascontiguousarray(v.centres, dtype=float)
+        euler_maruyama_step(
+            self.positions,
+            centres,
+            self._noise,
+            float(dt),
+            g.x0,
+            g.x1,
+            g.y0,
+            g.y1,
+            g.nx,
+            g.ny,
+            float(np.sqrt(2.0 * self.sigma * dt)),
+        )
+        return self.positions
+
+    def step_robots(
+        self, velocities: np.ndarray, dt: float, rng: np.random.Generator
+    ) -> np.ndarray:
+        """Euler-Maruyama with each robot's own velocity ``(2, N)`` (length / s), for a
+        law that moves each robot itself: ``X_i <- R(X_i + v_i dt + sqrt(2 sigma dt) xi_i)``, the
+        draws as in :meth:`step` (``R`` the reflection at the walls).
+        """
+        g = self.grid
+        v = np.asarray(velocities, dtype=float)
+        if v.shape != self.positions.shape:
+            raise ValueError(f"velocities must have shape {self.positions.shape}, got {v.shape}")
+        draw_normals(rng, self._noise)
+        self.positions += v * dt + self._noise * np.sqrt(2.0 * self.sigma * dt)
+        reflect(self.positions[0], g.x0, g.x1)
+        reflect(self.positions[1], g.y0, g.y1)
+        return self.positions
+
+    def move(self, v: np.ndarray, dt: float, rng: np.random.Generator) -> np.ndarray:
+        """One step under the commanded velocities ``v`` ``(2, N)`` (length / s)
+        (:meth:`step_robots`); returns the applied velocities, ``v`` itself: an ideal
+        integrator applies what it is commanded.
+        """
+        self.step_robots(v, dt, rng)
+        return np.asarray(v, dtype=float)
+
+    def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
+        """Plain-numpy statement of :meth:`step` (same random draws, same result)."""
+        g = self.grid
+        draw_normals(rng, self._noise)
+        self._noise *= np.sqrt(2.0 * self.sigma * dt)
+        drift = interpolate(g, v.centres, self.positions)
+        self.positions += drift * dt + self._noise
+        reflect(self.positions[0], g.x0, g.x1)
+        reflect(self.positions[1], g.y0, g.y1)
+        return self.positions
+
+    def histogram(self) -> np.ndarray:
+        """Empirical density on the grid: robots per cell / (N cell area),
+        shape ``(ny, nx)``, grid integral 1 (1 / length^2). A robot on the upper wall
+        counts in the last cell (as :func:`numpy.histogram2d` counts it, the reference).
+        """
+        g = self.grid
+        col = np.minimum(((self.positions[0] - g.x0) / g.dx).astype(np.intp), g.nx - 1)
+        row = np.minimum(((self.positions[1] - g.y0) / g.dy).astype(np.intp), g.ny - 1)
+        counts = np.bincount(row * g.nx + col, minlength=g.size)
+        return counts.reshape(g.shape) / (self.n * g.cell_area)
+
+
+def spread_values(nominal: float, spread: float, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Per-robot values ``nominal (1 + spread U)``, ``U`` uniform on ``[-1, 1]`` (drawn
+    from ``rng``); ``nominal > 0`` and ``0 <= spread < 1`` (checked by the plant's
+    constructor), so every value is positive.
+    """
+    return np.asarray(nominal * (1.0 + spread * rng.uniform(-1.0, 1.0, n)))
+
+
+def _spread(spread: float) -> float:
+    s = number("spread", spread, 0.0)
+    require(s < 1, "spread", spread, "below 1 (a relative half-width; values stay positive)")
+    return s
+
+
+class Agents:
+    """``N`` robots measured by their KDE, with the loop's ``N -> infinity`` limit.
+
+    Args:
+        grid, model, init, control: Run-time arguments (grid, Fokker-Planck model,
+            ``p_0``, the control law).
+        n: Number of robots ``N >= 1``.
+        bandwidth: KDE bandwidth ``h > 0`` (length), at most the domain side.
+        mirror: Wall images in the KDE.
+        method: KDE evaluation, ``auto`` | ``exact`` | ``binned``.
+        localisation_noise: Standard deviation ``s`` (length), ``0 <= s <=`` a quarter of
+            the domain side, of the localisation error: the estimator and the law see
+            ``X_i + s xi_i`` (``xi_i`` standard normal, fresh every step after the robots
+            move, from the plant's own stream ``[seed, 3]``, so the robots' own draws are
+            those of the run without it; reflected into the domain at the walls), while
+            the robots move from their true positions and the swarm metrics use the true
+            ones. 0 draws nothing.
+        seed: The run's seed, for the localisation error's stream and the link's.
+        link_period, link_latency, link_loss: The command link (:class:`harness.plants.link.Link`):
+            time between broadcasts (s; None: every step), delay to arrival (s) and
+            the probability that a robot misses a broadcast. The defaults are the
+            ideal link, under which the robots move by the code path of a run without
+            one.
+        dt: The step (s), which the link's period and latency count in.
+
+    Per step the plant reports ``tracking_error``, the mean over robots of
+    ``|velocity applied - velocity commanded|`` (length / s; the commanded velocity is
+    the held command at the robot, the applied one its displacement over the step
+    without the noise; 0 for these ideal integrators, which apply what they hold), and
+    ``command_age``, the mean age of the held commands (s, :class:`harness.plants.link.Link`);
+    both None before the first step.
+
+    Without a mean-field form of the law (``needs_robots``, a law that moves each
+    robot itself, such as a Markov chain or an assignment) there is no limit to
+    compute: ``density`` is then the robots' histogram (robots per cell over ``N``
+    times the cell area, 1 / length^2), and ``has_limit`` is false.
+    """
+
+    def __init__(
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        init: Density,
+        control: Control,
+        n: int,
+        bandwidth: float,
+        mirror: bool = True,
+        method: str = "auto",
+        localisation_noise: float = 0.0,
+        seed: int = 0,
+        link_period: float | None = None,
+        link_latency: float = 0.0,
+        link_loss: float = 0.0,
+        dt: float | None = None,
+    ) -> None:
+        self.grid, self.model, self.init, self.control = grid, model, init, control
+        self.localisation_noise = number("localisation_noise", localisation_noise, 0.0)
+        quarter = min(grid.x1 - grid.x0, grid.y1 - grid.y0) / 4
+        require(
+            self.localisation_noise <= quarter,
+            "localisation_noise", localisation_noise, f"at most a quarter of the side, {quarter:g}",
+        )  # fmt: skip
+        self.seed = integer("seed", seed, 0)
+        self._sight = np.random.default_rng([self.seed, 3])
+        self.has_limit = not needs_robots(control)
+        self.density = init.on_grid(grid)
+        self.n = integer("n", n, 1)
+        h = number("bandwidth", bandwidth, 0.0, strict=True)
+        side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
+        require(h <= side, "bandwidth", bandwidth, f"at most the domain side {side:g}")
+        require(method in KDE.METHODS, "method", method, f"one of {', '.join(KDE.METHODS)}")
+        self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method)
+        self.smoother = Smoother(grid, h, mirror)
+        self.swarm: Swarm | None = None
+        self.resolution: float | None = h  # the KDE resolves no scale below h
+        self.t = 0.0
+        self.link = command_link(link_period, link_latency, link_loss, dt, self.seed)
+        self.tracking_error: float | None = None
+        self.command_age: float | None = None
+        self._steps = 0
+
+    has_robots = True
+
+    BYTES_PER_ROBOT = 200
+    """Per robot: positions, noise and interpolation temporaries (float64, 2 x 8 bytes
+    each, about eight of them), the KDE's binning indices and weights, and the logged
+    point cloud (float32 x, y, z and its serialised copy)."""
+
+    @classmethod
+    def memory_estimate(cls, grid: Grid, n: int = 1, **params: object) -> MemoryEstimate:
+        """``BYTES_PER_ROBOT n`` plus the grid arrays (:func:`default_memory`), plus the
+        commands a link holds in flight: up to ``latency / period + 1`` copies of a
+        command (a velocity per robot, 16 bytes each, and a field of about 32 bytes per
+        cell), named by ``link.latency`` when they are most of it.
+        """
+        robots = n if isinstance(n, int) and n > 0 else 1
+        base = cls.BYTES_PER_ROBOT * robots + default_memory(grid).nbytes
+        period = params.get("link_period") or params.get("dt")
+        latency = params.get("link_latency") or 0.0
+        in_flight = 0.0
+        if isinstance(period, (int, float)) and isinstance(latency, (int, float)) and period > 0:
+            in_flight = latency / period + 1.0 if latency > 0 or period != params.get("dt") else 0.0
+        held = in_flight * (16.0 * robots + 32.0 * grid.size)
+        if not np.isfinite(held) or held > 1e18:
+            held = 1e18  # a latency no run reaches: refused as more than any machine has
+        return MemoryEstimate(int(base + held), "link_latency" if held > base else "n")
+
+    @property
+    def positions(self) -> np.ndarray | None:
+        """Robot positions ``(2, N)`` (length), None before :meth:`start`."""
+        return None if self.swarm is None else self.swarm.positions
+
+    @property
+    def observed(self) -> np.ndarray | None:
+        """The positions as the estimator and the law see them ``(2, N)`` (length):
+        the true ones plus the localisation error (the class docstring).
+        """
+        if self.localisation_noise > 0 and self.swarm is not None:
+            return self._observed
+        return self.positions
+
+    def _observe(self) -> None:
+        """Draw the localisation error of the current positions (own stream)."""
+        if self.localisation_noise > 0:
+            assert self.swarm is not None
+            g = self.grid
+            seen = self.swarm.positions + self.localisation_noise * self._sight.standard_normal(
+                self.swarm.positions.shape
+            )
+            reflect(seen[0], g.x0, g.x1)
+            reflect(seen[1], g.y0, g.y1)
+            self._observed = seen
+
+    def check(self, control: Control, **parts: object) -> None:
+        """The limit ``p_inf`` moves by the law's field: refuse a law without one."""
+        require_field(control, "on plant=agents (its N -> infinity limit moves by the field)")
+
+    headings: np.ndarray | None = None
+    """Robot headings as unit vectors ``(cos theta, sin theta)``, ``(2, N)``, for robots
+    that have one, else None."""
+
+    def _robots(self, positions: np.ndarray) -> Swarm:
+        """The robots at ``positions`` ``(2, N)``: ideal integrators here."""
+        return Swarm(self.grid, positions, self.model.sigma)
+
+    def start(self, rng: np.random.Generator) -> None:
+        """Draw ``N`` robots from ``p_0``."""
+        self.swarm = self._robots(self.init.sample(self.n, self.grid, rng))
+        self.link.start(self.n)
+        self.tracking_error = self.command_age = None
+        self._steps = 0
+        self.t = 0.0
+        if not self.has_limit:
+            self.density = self.swarm.histogram()
+        self._sight = np.random.default_rng([self.seed, 3])  # the stream restarts
+        self._observe()
+
+    def move_robots(self, command: Command, dt: float, rng: np.random.Generator) -> None:
+        """The command through the link and the robots over the step under what each
+        holds; sets ``tracking_error``.
+        """
+        assert self.swarm is not None, "call start first"
+        self.link.transmit(command, self._steps)
+        if self.link.ideal and type(self.swarm) is Swarm:  # a run without a link
+            if command.robots is not None:
+                self.swarm.step_robots(command.robots, dt, rng)
+            else:
+                assert command.field is not None
+                self.swarm.step(command.field, dt, rng)
+            self.tracking_error = 0.0
+        else:
+            field = self.link.common_field()
+            move_field = getattr(self.swarm, "move_field", None)
+            if field is not None and move_field is not None:  # one pass for a shared field
+                self.tracking_error = move_field(field, dt, rng)
+            else:
+                held = self.link.velocities(self.swarm.positions, self.grid)
+                applied = self.swarm.move(held, dt, rng)
+                # tracking error: (1/N) sum_k |applied_k - commanded_k|
+                self.tracking_error = float(np.mean(np.hypot(*(applied - held))))
+
+    def advance(
+        self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
+    ) -> None:
+        """The command through the link; the robots over the step under what each
+        holds (their own velocities when the command has them, else the field's
+        interpolant; ideal integrators by Euler-Maruyama with reflection); the limit
+        ``p_inf`` under the law's field of its own noise-free KDE and of ``p_inf``
+        itself (held over the step, like the command), or the robots' histogram
+        without a limit; then the localisation error of the new positions.
+        """
+        self.move_robots(command, dt, rng)
+        assert self.swarm is not None
+        self.command_age = self.link.age
+        self._steps += 1
+        if self.has_limit:
+            estimate = Estimate(*self.smoother(self.density))
+            limit = self.control(ControlInput(self.t, estimate, density=self.density))
+            assert limit.field is not None
+            self.density = self.model.step(self.density, limit.field, dt)
+        else:
+            self.density = self.swarm.histogram()
+        self.t += dt
+        self._observe()
+
+    def measure(self, rng: np.random.Generator) -> Measurement:
+        """The KDE of the robots as observed (:attr:`observed`) and its analytic gradient."""
+        assert self.swarm is not None, "call start first"
+        seen = self.observed
+        assert seen is not None
+        return Measurement(*self.kde(seen))

@@ -1,0 +1,100 @@
+"""``plant=meanfield``: no robots; the state is the Fokker-Planck density ``p`` (eq. ``FP
+equation``) and the measurement is ``p`` plus seeded Gaussian noise with the KDE's own
+variances ``k p`` and ``k_g p`` per cell (notes section 3), for the swarm size and
+bandwidth configured.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from harness.estimators.kde import noise_constants
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.parameters import integer, number, require
+from harness.plants.link import command_link
+from harness.protocols import (
+    Control,
+    refuse_robot_law,
+    require_field,
+)
+from harness.records import Command, Measurement
+from harness.targets.densities import Density
+
+
+class MeanField:
+    """The mean-field density, measured with KDE-like noise (no robots).
+
+    Args:
+        grid, model, init, control: Run-time arguments (``control`` is not used: the
+            density moves under the applied velocity).
+        robots: Swarm size ``N >= 1`` whose KDE noise is imitated.
+        bandwidth: KDE bandwidth ``h > 0`` (length) whose noise is imitated.
+        localisation_noise: Must be 0: without robots there are no positions to
+            mislocate.
+        link_period, link_latency, link_loss, dt: Must be the ideal link (the
+            defaults): without robots there is no one to send commands to.
+    """
+
+    positions = None
+    observed = None
+    headings = None
+    tracking_error = None
+    command_age = None
+    has_robots = False
+    has_limit = True
+    resolution = None  # white noise per cell: grid resolution
+
+    def __init__(
+        self,
+        grid: Grid,
+        model: FokkerPlanck,
+        init: Density,
+        control: Control,
+        robots: int,
+        bandwidth: float,
+        localisation_noise: float = 0.0,
+        link_period: float | None = None,
+        link_latency: float = 0.0,
+        link_loss: float = 0.0,
+        dt: float | None = None,
+    ) -> None:
+        noise = number("localisation_noise", localisation_noise, 0.0)
+        require(noise == 0, "localisation_noise", localisation_noise, "0 without robots")
+        link = command_link(link_period, link_latency, link_loss, dt, 0)
+        if not link.ideal:
+            bad = "link_loss" if link_loss else "link_latency" if link_latency else "link_period"
+            value = {"link_loss": link_loss, "link_latency": link_latency}.get(bad, link_period)
+            require(False, bad, value, "the ideal link on plant=meanfield (it has no robots)")
+        self.grid, self.model = grid, model
+        self.density = init.on_grid(grid)
+        self.robots = integer("robots", robots, 1)
+        self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
+        self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
+
+    def check(self, control: Control, **parts: object) -> None:
+        """The density moves by the law's field of the density: refuse a law without a
+        field or without a mean-field form.
+        """
+        require_field(control, "on plant=meanfield (the density moves by it)")
+        refuse_robot_law(control, "on plant=meanfield (it has no robots)")
+
+    def start(self, rng: np.random.Generator) -> None:
+        """Nothing to draw: the state is ``p_0`` on the grid."""
+
+    def advance(
+        self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
+    ) -> None:
+        """The backward-Euler Fokker-Planck step under the command's field."""
+        assert command.field is not None
+        self.density = self.model.step(self.density, command.field, dt, a)
+
+    def measure(self, rng: np.random.Generator) -> Measurement:
+        """``p + sqrt(k p) xi`` and ``G p + sqrt(k_g p) xi_g``, ``xi`` standard normal."""
+        p = self.density
+        sd = np.sqrt(np.maximum(p, 0.0))
+        p_meas = p + np.sqrt(self.k) * sd * rng.standard_normal(self.grid.shape)
+        grad = self.grid.gradient(p)
+        grad_meas = grad + np.sqrt(self.k_g) * sd * rng.standard_normal((2, *self.grid.shape))
+        return Measurement(p_meas, grad_meas)

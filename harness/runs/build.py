@@ -1,0 +1,367 @@
+"""Build a run from a config: every component and observer from its YAML.
+
+:func:`build` is one straight line: shared checks, grid, densities, model, control,
+plant, estimator, the components' own compatibility checks, the step bound, the
+observers and the run's settings. It reads the whole config once; nothing reads the
+config after it (:class:`Experiment` holds everything a run needs). Each component is
+instantiated from its config node (``_target_`` plus the class's own parameters) by
+:func:`component`, which hands it its run-time arguments (see
+:mod:`harness.protocols` and :mod:`harness.observers`) and turns a refused parameter
+into a :class:`~harness.runs.checks.ConfigError` that names the full key.
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import re
+from dataclasses import dataclass, field
+from typing import Any
+
+import hydra.utils
+import numpy as np
+from hydra.errors import InstantiationException
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from harness.fokker_planck import FokkerPlanck
+from harness.grid import Grid
+from harness.observers.base import Observer
+from harness.parameters import Incompatible, ParameterError
+from harness.protocols import Control, Estimator, Plant
+from harness.runs.checks import (
+    SHARED_BLOCKS,
+    ConfigError,
+    DiskNeed,
+    check_built,
+    check_memory,
+    check_resolvable,
+    check_shared,
+    check_unread,
+    density_on_grid,
+    disk_need,
+    target_on_grid,
+)
+from harness.runs.identity import RunIdentity, resolved
+from harness.targets.densities import Density, Target
+from harness.targets.moving import moves
+
+_INTERPOLATION = re.compile(r"^\$\{([A-Za-z_][\w.]*)\}$")
+
+
+_UNEXPECTED = re.compile(r"unexpected keyword argument '(\w+)'")
+
+
+_MISSING = re.compile(r"missing \d+ required (?:keyword-only |positional )?arguments?: (.+)$")
+
+
+PROTOCOLS: dict[str, type] = {
+    "target": Density,
+    "init": Density,
+    "plant": Plant,
+    "estimator": Estimator,
+    "control": Control,
+    "observers": Observer,
+}
+"""The protocol each config group's component implements (``observers``: each entry)."""
+
+
+def public_key(cfg: DictConfig, group: str, name: str) -> str:
+    """The key to name for parameter ``name`` of ``group``: the key it interpolates
+    (``plant.n: ${agents.n}`` gives ``agents.n``), else ``group.name``.
+    """
+    node = OmegaConf.select(cfg, group, default=None)
+    raw = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else {}
+    value = raw.get(name) if isinstance(raw, dict) else None
+    match = _INTERPOLATION.match(value) if isinstance(value, str) else None
+    return match.group(1) if match else f"{group}.{name}"
+
+
+def public_keys(cfg: DictConfig, group: str) -> dict[str, str]:
+    """:func:`public_key` of every parameter of ``group`` (one pass over its node)."""
+    node = OmegaConf.select(cfg, group, default=None)
+    raw = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else {}
+    out = {}
+    for name, value in raw.items() if isinstance(raw, dict) else ():
+        match = _INTERPOLATION.match(value) if isinstance(value, str) else None
+        out[str(name)] = match.group(1) if match else f"{group}.{name!s}"
+    return out
+
+
+def _first_line(err: BaseException) -> str:
+    """``Type: first line of the message`` of an exception."""
+    text = str(err).strip()
+    return f"{type(err).__name__}: {text.splitlines()[0]}" if text else type(err).__name__
+
+
+def members(protocol: type) -> list[str]:
+    """The attributes and methods a protocol asks for (``__call__`` included)."""
+    names = list(getattr(protocol, "__annotations__", {}))
+    for name, value in vars(protocol).items():
+        if callable(value) and (not name.startswith("_") or name == "__call__"):
+            names.append(name)
+    return names
+
+
+def _nested(value: Any) -> bool:
+    """Whether a resolved value holds a config Hydra must instantiate itself (a nested
+    ``_target_`` or another of its ``_``-keys).
+    """
+    if isinstance(value, dict):
+        return any(str(k).startswith("_") or _nested(v) for k, v in value.items())
+    if isinstance(value, list):
+        return any(_nested(v) for v in value)
+    return False
+
+
+def _factory(plain: dict[str, Any]) -> Any:
+    """``_target_`` with its parameters bound, from resolved values: Hydra's
+    ``instantiate(..., _partial_=True)``, done directly when no parameter holds a nested
+    config (Hydra wraps the values in OmegaConf nodes again, about 5 ms a component,
+    which a test suite building thousands of configs pays many times over).
+
+    Raises:
+        InstantiationException: for a ``_target_`` that cannot be loaded.
+    """
+    params = {k: v for k, v in plain.items() if k != "_target_"}
+    if _nested(params):
+        return hydra.utils.instantiate(plain, _partial_=True, _convert_="all")
+    try:
+        target = hydra.utils.get_object(str(plain["_target_"]))
+    except Exception as err:
+        raise InstantiationException(str(err)) from err
+    return functools.partial(target, **params)
+
+
+def component(
+    cfg: DictConfig, group: str, values: dict[str, Any] | None = None, **runtime: Any
+) -> Any:
+    """Instantiate the component of ``group`` (a dotted path for an observer,
+    ``observers.log``) with its run-time arguments, from ``values`` (the config
+    resolved once, :func:`harness.runs.identity.resolved`) when given.
+
+    Raises:
+        ConfigError: for a missing or unloadable ``_target_``, a parameter the class
+            does not take or lacks, a refused parameter (:class:`ParameterError`), or
+            an object that does not implement the group's protocol.
+    """
+    node = OmegaConf.select(cfg, group, default=None)
+    if not isinstance(node, DictConfig) or "_target_" not in node:
+        raise ConfigError(group, node, "a component config with _target_ (see docs/extending.md)")
+    plain: Any = values if values is not None else OmegaConf.to_container(node, resolve=True)
+    for part in group.split(".") if values is not None else ():
+        plain = plain[part]
+    try:
+        factory = _factory(plain)
+    except InstantiationException as err:
+        cause = err.__cause__ or err
+        first = str(cause).strip().splitlines()[0] if str(cause).strip() else type(cause).__name__
+        raise ConfigError(f"{group}._target_", node.get("_target_"), first) from None
+    target = node.get("_target_")
+    try:
+        obj = factory(**runtime)
+    except ParameterError as err:
+        raise ConfigError(public_key(cfg, group, err.name), err.value, err.allowed) from None
+    except TypeError as err:
+        text = str(err)
+        unexpected, missing = _UNEXPECTED.search(text), _MISSING.search(text)
+        if unexpected:
+            name = unexpected.group(1)
+            allowed = f"not a parameter of {target}"
+            raise ConfigError(f"{group}.{name}", node.get(name), allowed) from None
+        if missing:
+            raise ConfigError(group, target, f"{target} needs {missing.group(1)}") from None
+        raise ConfigError(group, target, _first_line(err)) from None
+    except (ValueError, ArithmeticError, IndexError, KeyError, AttributeError) as err:
+        # a constructor sees only config values and run-time objects: whatever it
+        # raises (a list of the wrong length, an overflow) is a refused config
+        raise ConfigError(group, target, _first_line(err)) from None
+    protocol = PROTOCOLS[group.split(".")[0]]
+    if not isinstance(obj, protocol):
+        lacks = ", ".join(m for m in members(protocol) if not hasattr(obj, m))
+        allowed = f"must implement {protocol.__name__} (missing: {lacks})"
+        raise ConfigError(f"{group}._target_", target, allowed)
+    return obj
+
+
+def _named(factory_target: Any, runtime: dict[str, Any]) -> dict[str, Any]:
+    """The run-time arguments an observer's constructor names (all of them when it takes
+    ``**kwargs``).
+    """
+    try:
+        params = inspect.signature(factory_target).parameters
+    except (TypeError, ValueError):
+        return runtime
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return runtime
+    return {k: v for k, v in runtime.items() if k in params}
+
+
+def observers(
+    cfg: DictConfig, values: dict[str, Any] | None = None, **runtime: Any
+) -> dict[str, Observer]:
+    """The observers of ``cfg.observers``, in config order, each given the run-time
+    arguments its constructor names (:mod:`harness.observers`).
+
+    Raises:
+        ConfigError: as :func:`component`, naming ``observers.<name>...``.
+    """
+    node = cfg.get("observers")
+    if node is None:
+        return {}
+    if not isinstance(node, DictConfig):
+        raise ConfigError("observers", node, "a dict of observers (conf/observers/)")
+    out = {}
+    for key in node.keys():
+        name = str(key)
+        group = f"observers.{name}"
+        entry = node.get(name)
+        if not isinstance(entry, DictConfig) or "_target_" not in entry:
+            raise ConfigError(group, entry, "an observer config with _target_")
+        try:
+            target = hydra.utils.get_object(str(entry._target_))
+        except Exception:
+            target = None  # component() names the unloadable target
+        out[name] = component(cfg, group, values, **_named(target, runtime))
+    return out
+
+
+def resolve(cfg: DictConfig) -> dict[str, Any]:
+    """The config resolved once (:func:`harness.runs.identity.resolved`), or the
+    :class:`ConfigError` of :func:`harness.runs.checks.check_resolvable` naming the key that
+    does not resolve (or the missing shared block).
+    """
+    if all(block in cfg for block in SHARED_BLOCKS):
+        try:
+            return resolved(cfg)
+        except OmegaConfBaseException:
+            pass
+    check_resolvable(cfg)  # raises, naming the key
+    return resolved(cfg)
+
+
+def _check_parts(plant: Plant, estimator: Estimator, control: Control) -> None:
+    """Each component's own ``check`` of the others (:mod:`harness.protocols`)."""
+    for part in (plant, estimator, control):
+        check = getattr(part, "check", None)
+        if check is None:
+            continue
+        try:
+            check(plant=plant, estimator=estimator, control=control)
+        except Incompatible as err:
+            raise ConfigError(err.name, err.value, err.allowed) from None
+
+
+def _on_path(cfg: DictConfig, density: Density, grid: Grid) -> Density:
+    """``density``, after its own check of its path on ``grid`` (a moving target's
+    ``check(grid)``, :class:`harness.targets.moving.RotatingMixture`), refused naming the key.
+    """
+    check = getattr(density, "check", None)
+    if check is not None:
+        try:
+            check(grid)
+        except ParameterError as err:
+            raise ConfigError(public_key(cfg, "target", err.name), err.value, err.allowed) from None
+    return density
+
+
+def _check_follows(target: Target, control: Control) -> None:
+    """Refuse a law that cannot follow a moving target (its ``follows_moving_target``
+    absent or false) when the target moves.
+    """
+    if moves(target) and not getattr(control, "follows_moving_target", False):
+        raise ConfigError(
+            "control",
+            type(control).__name__,
+            "a law that follows a moving target p_*(t) (paper, heat, langevin) with target=moving",
+        )
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """Everything one run needs (see :func:`build`).
+
+    Attributes:
+        grid, target, init, p0, model, plant, estimator, control: The components.
+        observers: The observers by name, in the order they see each step.
+        seed: The run's seed.
+        dt: Step (s).
+        steps: Number of steps.
+        identity: The config and provenance records of the log.
+        disk: The log's size estimate.
+        keys: The public config key of each observer parameter
+            (``"observers.live.port" -> "log.live_port"``), for errors raised when the
+            run starts.
+        spent: Set by :func:`harness.runs.run.run`: the components keep their state, so an
+            experiment runs once.
+    """
+
+    grid: Grid
+    target: Target
+    init: Density
+    p0: np.ndarray
+    model: FokkerPlanck
+    plant: Plant
+    estimator: Estimator
+    control: Control
+    observers: dict[str, Observer]
+    seed: int
+    dt: float
+    steps: int
+    identity: RunIdentity
+    disk: DiskNeed
+    keys: dict[str, str]
+    spent: list[bool] = field(default_factory=list, compare=False, repr=False)
+
+
+def build(cfg: DictConfig) -> Experiment:
+    """Everything a run of ``cfg`` needs, checked; the only reader of the config.
+
+    In order: every interpolation resolves, every key is read by something, the
+    shared blocks, the memory the run will need (estimated from the components'
+    parameters before any of them allocates), the components, each component's own
+    check of the others, the step bound, the observers, the log's size and identity.
+    Building draws no random numbers (robots are placed by ``plant.start(rng)``),
+    writes nothing and opens nothing (observers open files and ports when the run
+    starts).
+
+    Raises:
+        ConfigError: for the first value that is not allowed.
+    """
+    data = resolve(cfg)
+    check_unread(cfg)
+    check_shared(cfg)
+    grid = Grid.square(cfg.grid.n, cfg.grid.length)
+    check_memory(cfg, grid)
+    target = target_on_grid(_on_path(cfg, component(cfg, "target", data), grid), grid)
+    init = component(cfg, "init", data)
+    p0 = density_on_grid("init", init, grid)
+    model = FokkerPlanck(grid, cfg.dynamics.sigma)
+    control = component(cfg, "control", data, target=target)
+    _check_follows(target, control)
+    plant = component(cfg, "plant", data, grid=grid, model=model, init=init, control=control)
+    estimator = component(cfg, "estimator", data, grid=grid, model=model)
+    _check_parts(plant, estimator, control)
+    check_built(cfg, grid, target, control, plant, estimator)
+    steps = round(cfg.sim.t_final / cfg.sim.dt)
+    identity = RunIdentity(data, int(cfg.seed))
+    watching = observers(
+        cfg, data, grid=grid, target=target, control=control, plant=plant, steps=steps,
+        identity=identity,
+    )  # fmt: skip
+    robots = int(getattr(plant, "n", 0) or 0) if plant.has_robots else 0
+    keys = {
+        f"observers.{name}.{param}": key
+        for name in watching
+        for param, key in public_keys(cfg, f"observers.{name}").items()
+    }
+    return Experiment(
+        grid, target, init, p0, model, plant, estimator, control,
+        observers=watching,
+        seed=int(cfg.seed),
+        dt=float(cfg.sim.dt),
+        steps=steps,
+        identity=identity,
+        disk=disk_need(watching, robots, keys, steps),
+        keys=keys,
+    )  # fmt: skip
