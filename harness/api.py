@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse.linalg as spla
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
 from threadpoolctl import ThreadpoolController
 
 from analysis.load import RunLog, load_run
@@ -62,7 +62,9 @@ is not evaluated at that step or does not apply to the loop)."""
 def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> DictConfig:
     """The config the command line composes from ``overrides``.
 
-    The ``hydra`` node is left out, as in the config a command-line run receives.
+    Of Hydra's own node ``hydra`` only ``hydra.runtime.choices`` is kept (the option
+    chosen in each config group, which the log records, :func:`harness.runs.identity.choices`);
+    the rest is left out, as in the config a command-line run receives.
     Works repeatedly in one process, from any current directory, and inside a running
     Hydra app or an initialised Hydra (whose global state is set aside and restored).
 
@@ -89,7 +91,11 @@ def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> 
     global_hydra.clear()
     try:
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            return hydra_compose(config_name, overrides=list(overrides))
+            full = hydra_compose(config_name, overrides=list(overrides), return_hydra_config=True)
+            chosen = OmegaConf.to_container(full.hydra.runtime.choices, resolve=False)
+            with open_dict(full):
+                full.hydra = {"runtime": {"choices": chosen}}
+            return full
     finally:
         global_hydra = GlobalHydra.instance()
         global_hydra.clear()

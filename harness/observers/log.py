@@ -29,7 +29,9 @@ starting at the pose origin ``(x0, y0, 0)``, ``cell_size = (dx, dy)``, little-en
 float32 values interleaved per cell, frame ``world``. Field messages every
 ``field_every`` steps (and at the last step), positions every ``positions_every``.
 
-Metadata records: ``config`` (key ``yaml``: the resolved config), ``provenance``
+Metadata records: ``config`` (key ``yaml``: the resolved config), ``choices`` (Hydra's
+choices: the option of each config group, ``plant: agents``, ``control: paper``, as the
+command line or :func:`harness.api.compose` chose them), ``provenance``
 (git commit and dirty flag, ``git_diff_sha256`` of the uncommitted code, package
 versions, Python version, ``code_sha256`` of all of these
 (:func:`harness.runs.identity.provenance`), seed, host, start time; the only wall-clock
@@ -345,8 +347,8 @@ class McapLogger:
             encoding="jsonschema",
             data=json.dumps(METRICS_SCHEMA).encode(),
         )
-        self._writer.add_metadata("config", {"yaml": self.identity.config_yaml})
-        self._writer.add_metadata("provenance", self.identity.provenance())
+        for name, record in self.identity.records().items():
+            self._writer.add_metadata(name, record)
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         """Register a schema in the file (and keep it for the live view); its id."""

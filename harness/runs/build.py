@@ -42,7 +42,7 @@ from harness.runs.checks import (
     disk_need,
     target_on_grid,
 )
-from harness.runs.identity import RunIdentity, resolved
+from harness.runs.identity import RunIdentity, choices, resolved
 from harness.targets.densities import Density, Target
 from harness.targets.moving import moves
 
@@ -344,7 +344,7 @@ def build(cfg: DictConfig) -> Experiment:
     _check_parts(plant, estimator, control)
     check_built(cfg, grid, target, control, plant, estimator)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
-    identity = RunIdentity(data, int(cfg.seed))
+    identity = RunIdentity(data, int(cfg.seed), choices(cfg))
     watching = observers(
         cfg, data, grid=grid, target=target, control=control, plant=plant, steps=steps,
         identity=identity,

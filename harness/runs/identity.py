@@ -1,4 +1,5 @@
-"""What identifies a run in its log: the resolved config, its hash and the provenance.
+"""What identifies a run in its log: the resolved config, its hash, Hydra's choices and
+the provenance.
 
 :func:`config_hash` and :func:`code_identity` decide together whether a sweep's job is
 done already (:mod:`harness.runs.jobs`): a log counts only for the same config computed by
@@ -37,16 +38,17 @@ PACKAGES = (
 
 
 class RunIdentity:
-    """What the log's ``config`` and ``provenance`` records hold, made when the log
-    opens from the resolved config taken at build.
+    """What the log's ``config``, ``choices`` and ``provenance`` records hold, made when
+    the log opens from the resolved config taken at build.
 
     Args:
         data: The resolved config without ``hydra``, as plain containers (not modified).
         seed: The run's seed.
+        choices: Hydra's choices, the option of each config group (:func:`choices`).
     """
 
-    def __init__(self, data: dict[str, Any], seed: int) -> None:
-        self.data, self.seed = data, seed
+    def __init__(self, data: dict[str, Any], seed: int, choices: dict[str, str]) -> None:
+        self.data, self.seed, self.choices = data, seed, dict(choices)
 
     @property
     def config_yaml(self) -> str:
@@ -63,6 +65,41 @@ class RunIdentity:
         flag, package versions, Python, seed, host, start time and ``config_sha256``.
         """
         return {**provenance(self.seed), "config_sha256": self.config_sha256}
+
+    def records(self) -> dict[str, dict[str, str]]:
+        """The metadata records the log opens with, in order: ``config`` (key ``yaml``),
+        ``choices`` (config group -> option) and ``provenance`` (taken now).
+        """
+        return {
+            "config": {"yaml": self.config_yaml},
+            "choices": dict(self.choices),
+            "provenance": self.provenance(),
+        }
+
+
+def choices(cfg: DictConfig) -> dict[str, str]:
+    """Hydra's choices: the option chosen in each config group of the project
+    (``{"plant": "agents", "control": "paper", "experiment": "smoke", ...}``; Hydra's own
+    groups ``hydra/...`` left out; ``null`` for a group set to nothing), from the
+    config's ``hydra.runtime.choices`` (a callback's config, or
+    :func:`harness.api.compose`'s), else from the running Hydra app, else none (a config
+    made by hand).
+    """
+    node = OmegaConf.select(cfg, "hydra.runtime.choices", default=None)
+    if node is None:
+        from hydra.core.hydra_config import HydraConfig
+
+        if not HydraConfig.initialized():
+            return {}
+        node = HydraConfig.get().runtime.choices
+    raw = OmegaConf.to_container(node, resolve=False) if isinstance(node, DictConfig) else node
+    if not isinstance(raw, dict):
+        return {}
+    return {
+        str(group): "null" if option is None else str(option)
+        for group, option in sorted(raw.items())
+        if not str(group).startswith("hydra/") and str(group) != "hydra"
+    }
 
 
 def resolved(cfg: DictConfig) -> dict[str, Any]:
