@@ -11,9 +11,8 @@ Topics (a topic that does not apply to the plant or estimator is absent):
   with one float32 field ``p`` (1 / length^2);
 * ``/fields/<name>`` for each density field an estimator publishes
   (``Estimate.fields``, field ``p``, 1 / length^2): with ``estimator=distributed``
-  ``/fields/p_hat`` is the robots' mean estimate, ``/fields/p_hat_central`` the
-  centralised filter's (the reference run alongside) and ``/fields/p_hat_robot`` the
-  estimate of robot ``estimator.robot``;
+  ``/fields/p_hat`` is the robots' mean estimate and the estimator publishes two more
+  (:data:`harness.estimators.distributed.metrics.FIELD_NAMES`);
 * ``/fields/grad_kde``, ``/fields/grad_hat``: fields ``gx``, ``gy`` (1 / length^3);
 * ``/fields/velocity``: fields ``vx``, ``vy`` (length / s), the cell-centre values;
 * ``/swarm/positions``: ``foxglove.PointCloud`` with float32 ``x, y, z`` (z = 0);
@@ -62,8 +61,12 @@ from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
+from harness.estimators.distributed.metrics import NETWORK_KEYS
 from harness.grid import Grid
 from harness.observers.base import RunContext, Status
+from harness.observers.metrics import FIELD_KEYS
+from harness.observers.motion import DISAGREEMENT_KEY, MOTION_KEYS, ROBOT_KEYS
+from harness.observers.swarm import SWARM_KEYS
 from harness.parameters import integer
 from harness.records import StepRecord
 from harness.runs.identity import RunIdentity
@@ -78,46 +81,13 @@ LOG_FILE = "run.mcap"
 """The log's file name in the run directory."""
 
 
-METRIC_KEYS = (
-    "t",
-    "phi_l2",
-    "phat_target_l2",
-    "eps_l2",
-    "eps_g_l2",
-    "kde_l2",
-    "lyapunov",
-    "mass",
-    "trace_P",
-    "trace_Q",
-    "trace_P_grad",
-    "trace_Q_grad",
-    "swarm_l2",
-    "swarm_w2",
-    "est_swarm_l2",
-    "limit_swarm_l2",
-    "limit_target_l2",
-    "phat_smoothed_target_l2",
-    "effort",
-    "mean_speed",
-    "peak_speed",
-    "tracking_error",
-    "command_age",
-    "command_disagreement",
-    "consensus_l2",
-    "central_gap_l2",
-    "messages",
-    "bytes",
-    "message_bytes",
-    "mean_degree",
-    "components",
-    "algebraic_connectivity",
-)
-"""The keys of every ``/metrics`` message, in log order: the field metrics
-(:class:`harness.observers.metrics.FieldMetrics`), the swarm metrics
-(:class:`harness.observers.swarm.SwarmTruth`), the motion metrics (:mod:`harness.observers.motion`) and
-the numbers an estimator publishes
-(``Estimate.metrics``; the last eight are the decentralised estimator's). A key no
-observer gave is ``null``."""
+METRIC_KEYS = FIELD_KEYS + SWARM_KEYS + MOTION_KEYS + ROBOT_KEYS + (DISAGREEMENT_KEY,) + NETWORK_KEYS
+"""The keys of every ``/metrics`` message, in log order, as the modules that compute them
+declare them: the field metrics (:data:`harness.observers.metrics.FIELD_KEYS`), the
+swarm metrics (:data:`harness.observers.swarm.SWARM_KEYS`), the motion metrics and what
+the plant reports (:mod:`harness.observers.motion`), and the numbers the decentralised
+estimator publishes (:data:`harness.estimators.distributed.metrics.NETWORK_KEYS`). A key
+no observer gave is ``null``."""
 
 
 ALWAYS_NUMBERS = ("t", "phi_l2", "phat_target_l2", "eps_l2", "eps_g_l2", "lyapunov", "mass")
@@ -158,15 +128,13 @@ FIELD_TOPICS = {
     "/fields/p_true": ("p",),
     "/fields/p_kde": ("p",),
     "/fields/p_hat": ("p",),
-    "/fields/p_hat_central": ("p",),
-    "/fields/p_hat_robot": ("p",),
     "/fields/grad_kde": ("gx", "gy"),
     "/fields/grad_hat": ("gx", "gy"),
     "/fields/velocity": ("vx", "vy"),
     "/fields/p_target": ("p",),
 }
-"""The value names of each field topic; a published field not listed is a density
-(``p``)."""
+"""The value names of each field topic the log writes itself; a field an estimator
+publishes (``/fields/<name>``, ``Estimate.fields``) is a density (``p``)."""
 
 
 def time_ns(t: float) -> int:

@@ -31,6 +31,22 @@ from harness.records import StepRecord
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
 
+FIELD_KEYS = (
+    "t",
+    "phi_l2",
+    "phat_target_l2",
+    "eps_l2",
+    "eps_g_l2",
+    "kde_l2",
+    "lyapunov",
+    "mass",
+    "trace_P",
+    "trace_Q",
+    "trace_P_grad",
+    "trace_Q_grad",
+)
+"""The field metrics (:func:`metrics`), in log order."""
+
 
 def metrics(grid: Grid, target: Target, rec: StepRecord) -> dict[str, float | None]:
     """The per-step metrics:

@@ -45,7 +45,15 @@ from harness.records import StepRecord
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
 
-SWARM_KEYS = ("swarm_l2", "swarm_w2", "est_swarm_l2", "limit_swarm_l2", "limit_target_l2")
+SWARM_KEYS = (
+    "swarm_l2",
+    "swarm_w2",
+    "est_swarm_l2",
+    "limit_swarm_l2",
+    "limit_target_l2",
+    "phat_smoothed_target_l2",
+)
+"""The swarm metrics (:meth:`SwarmTruth.measure`), in log order."""
 """The swarm metrics (null between their steps and without robots)."""
 
 

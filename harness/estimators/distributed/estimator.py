@@ -23,7 +23,7 @@ from harness.estimators.distributed.consensus import (
 )
 from harness.estimators.distributed.filters import RobotFilters
 from harness.estimators.distributed.graph import algebraic_connectivity, communication_graph
-from harness.estimators.distributed.metrics import network_figures
+from harness.estimators.distributed.metrics import FIELD_NAMES, network_figures
 from harness.estimators.filters.common import FilterSettings, MeasurementModel
 from harness.estimators.filters.engines import LocalEngine
 from harness.fokker_planck import FokkerPlanck
@@ -410,7 +410,8 @@ class DistributedEstimator:
                                   self.network.communication(adj), self._connectivity)  # fmt: skip
         p_mean = est.p_hat.mean(axis=0).reshape(g.shape)
         q_mean = grid_gradient(g, p_mean, self.order)  # linear: the robots' mean
-        fields = {"p_hat_central": p_central, "p_hat_robot": est.p_hat[self.robot].reshape(g.shape)}
+        central, robot = FIELD_NAMES
+        fields = {central: p_central, robot: est.p_hat[self.robot].reshape(g.shape)}
         return Estimate(
             p_mean, q_mean, *self.central.traces,
             robots=RobotEstimates(est.p_hat, None, np.ravel(p_central), self.order),

@@ -1,6 +1,6 @@
 """How far the robots' estimates are from each other and from the centralised one, and
-the network figures the decentralised estimator publishes as its metrics (the last six
-of :data:`harness.observers.log.METRIC_KEYS`).
+the network figures the decentralised estimator publishes as its metrics
+(:data:`NETWORK_KEYS`) beside the fields it publishes (:data:`FIELD_NAMES`).
 """
 
 from __future__ import annotations
@@ -11,6 +11,24 @@ import scipy.sparse as sp
 
 from harness.estimators.distributed.graph import n_components
 from harness.grid import Grid
+
+NETWORK_KEYS = (
+    "consensus_l2",
+    "central_gap_l2",
+    "messages",
+    "bytes",
+    "message_bytes",
+    "mean_degree",
+    "components",
+    "algebraic_connectivity",
+)
+"""The decentralised estimator's per-step metrics (:func:`network_figures`), in log order
+(the last keys of :data:`harness.observers.log.METRIC_KEYS`)."""
+
+FIELD_NAMES = ("p_hat_central", "p_hat_robot")
+"""The density fields the decentralised estimator publishes (``Estimate.fields``): the
+centralised reference's estimate and robot ``estimator.robot``'s, logged as
+``/fields/<name>``."""
 
 
 def consensus_l2(grid: Grid, p_hat: np.ndarray) -> float:
@@ -91,13 +109,14 @@ def network_figures(
         ``algebraic_connectivity``.
     """
     spread, gap = estimate_spread(grid, p_hat, p_central)
-    return {
-        "consensus_l2": spread,
-        "central_gap_l2": gap,
-        "messages": counts["messages"],
-        "bytes": counts["bytes"],
-        "message_bytes": counts["message_bytes"],
-        "mean_degree": counts["mean_degree"],
-        "components": float(n_components(adjacency)),
-        "algebraic_connectivity": connectivity,
-    }
+    values = (
+        spread,
+        gap,
+        counts["messages"],
+        counts["bytes"],
+        counts["message_bytes"],
+        counts["mean_degree"],
+        float(n_components(adjacency)),
+        connectivity,
+    )
+    return dict(zip(NETWORK_KEYS, values, strict=True))
