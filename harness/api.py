@@ -21,21 +21,17 @@ configs, as on the command line (``docs/extending.md``).
 from __future__ import annotations
 
 import copy as copy_
-import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-import numpy as np
-import scipy.sparse.linalg as spla
 from omegaconf import DictConfig, OmegaConf, open_dict
-from threadpoolctl import ThreadpoolController
 
 from analysis.load import RunLog, load_run
-from harness.loop import ClosedLoop
-from harness.observers.base import RunContext, Status
+from harness.loop import Experiment, computing, trajectory
+from harness.observers.base import Observer, RunContext, Status, computes
 from harness.observers.log import METRIC_KEYS
 from harness.records import StepRecord
-from harness.runs.build import Experiment, build
+from harness.runs.build import build
 from harness.runs.run import run as run_to_log
 
 __all__ = [
@@ -167,40 +163,26 @@ def simulate(
     if t_final is not None:
         cfg = copy_.deepcopy(cfg)
         cfg.sim.t_final = float(t_final)
-    parts = build(cfg)
-    return _steps(parts, copy)
+    exp = build(cfg)
+    return _steps(exp, copy)
 
 
-def _steps(parts: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]]:
-    """The steps of :func:`simulate`, computed as :func:`harness.runs.run.run` computes them,
-    seen by the observers that compute (``computes``: the metrics, the swarm metrics,
-    the estimator's numbers, the divergence guard); none that writes or shows.
+def _steps(exp: Experiment, copy: bool) -> Iterator[tuple[StepRecord, Metrics]]:
+    """The steps of :func:`simulate`: the trajectory (:func:`harness.loop.trajectory`)
+    seen by the observers that compute (:func:`harness.observers.base.computes`: the
+    metrics, the swarm metrics, the motion, the estimator's numbers, the divergence
+    guard); none that writes or shows.
     """
-    watching = [o for o in parts.observers.values() if getattr(o, "computes", False)]
+    watching = [o for o in exp.observers.values() if computes(o)]
     context = RunContext(Path.cwd())
-    parts.spent.append(True)
-    rng = np.random.default_rng(parts.seed)
-    loop = ClosedLoop(
-        parts.plant, parts.estimator, parts.control, parts.model, parts.dt, rng, target=parts.target
-    )
-    blas = ThreadpoolController()
     state, reason = "aborted", "the caller stopped iterating"
-    started: list = []
+    started: list[Observer] = []
     try:
-        for n in range(parts.steps + 1):
-            # as in the run's loop, only while a step computes (not while the caller holds
-            # it): one BLAS thread, and numerical warnings from the harness are errors
-            with blas.limit(limits=1), warnings.catch_warnings():
-                warnings.simplefilter("error", spla.MatrixRankWarning)
-                warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
-                if n == 0:
-                    for observer in watching:
-                        started.append(observer)
-                        observer.initialize(context)
-                rec = loop.start() if n == 0 else loop.step()
-                values: Metrics = {}
-                for observer in watching:
-                    observer.handle(rec, values)
+        with computing():
+            for observer in watching:
+                started.append(observer)
+                observer.initialize(context)
+        for rec, values in trajectory(exp, watching):
             # every key of the log's /metrics, None where no observer gave it (as logged)
             yield (copy_.deepcopy(rec) if copy else rec), {**dict.fromkeys(METRIC_KEYS), **values}
         state, reason = "completed", ""

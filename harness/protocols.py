@@ -41,43 +41,24 @@ from harness.parameters import Incompatible
 from harness.records import Command, ControlInput, Estimate, Measurement, StepInput
 
 
-def require_field(control: Any, where: str) -> None:
-    """Raise :class:`Incompatible` naming ``control`` unless the law gives a velocity
-    field (``gives_field``); ``where`` says who needs it and why
-    (``"on plant=meanfield (the density moves by it)"``).
-    """
-    if not control.gives_field:
-        raise Incompatible(
-            "control", type(control).__name__, f"a law with a velocity field {where}"
-        )
-
-
-def needs_robots(control: Any) -> bool:
-    """Whether ``control`` has no mean-field form (its optional ``needs_robots``)."""
-    return bool(getattr(control, "needs_robots", False))
-
-
-def refuse_robot_law(control: Any, where: str) -> None:
-    """Raise :class:`Incompatible` naming ``control`` when it needs robots
-    (:func:`needs_robots`); ``where`` says who cannot give them.
-    """
-    if needs_robots(control):
-        raise Incompatible(
-            "control", type(control).__name__, f"a law with a mean-field form {where}"
-        )
-
-
 @runtime_checkable
 class Plant(Protocol):
-    """What moves under the held velocity, and what it lets the estimator measure.
+    """What moves under the held command, and what it lets the estimator measure.
 
     Attributes:
-        density: The mean-field density ``(ny, nx)`` (1 / length^2) the plant carries: its
-            state (``meanfield``) or the loop's deterministic ``N -> infinity`` limit
-            (``agents``).
+        density: The density ``(ny, nx)`` (1 / length^2) the plant carries: the
+            mean-field state (``meanfield``), or the robots' histogram (robots per cell
+            over ``N`` times the cell area); the loop measures errors against the
+            ``N -> infinity`` limit instead when the run has one
+            (:class:`harness.plants.limit.Limit`).
         positions: Robot positions ``(2, N)`` (length), or None without robots.
         has_robots: Whether the plant has robots (``positions`` after ``start``), which
             move by a command's own velocities when it has them.
+
+    Optional members, read through this module: ``observed`` (:func:`observed`),
+    ``headings`` (:func:`headings`), ``tracking_error`` and ``command_age``
+    (:func:`reported`), ``n`` (:func:`robot_count`), ``link`` (:func:`command_link`), ``kde`` (:func:`kernel`),
+    ``resolution`` (:func:`resolution`), ``check`` (:func:`check_parts`).
     """
 
     density: np.ndarray
@@ -107,6 +88,9 @@ class Estimator(Protocol):
 
     Attributes:
         uses_kde: Whether it reads the plant's measurement (the loop measures only then).
+
+    Optional members: ``resolution`` (:func:`resolution`), ``check``
+    (:func:`check_parts`).
     """
 
     uses_kde: bool
@@ -127,21 +111,17 @@ class Control(Protocol):
 
     Attributes:
         gives_field: Whether every command has a field. The mean-field plant, the
-            agents plant's ``N -> infinity`` limit and the filters' transport model need
-            one, and refuse a law without (their ``check``).
+            ``N -> infinity`` limit and the filters' transport model need one, and refuse
+            a law without (their ``check``).
         own_estimates: Whether the law moves each robot by the law of the robot's own
             estimate when the estimate carries them (``Estimate.robots``); an estimator
             whose robots estimate on their own refuses a law without.
-        needs_robots: Whether the law has no mean-field form: it moves robots and cannot
-            act on a density (``ControlInput.density``). The mean-field plant refuses
-            it, and the agents plant then has no ``N -> infinity`` limit to carry
-            (:class:`harness.plants.agents.Agents`). Optional; false when absent
-            (:func:`needs_robots`).
-        v_max: The speed cap (length / s) every command is capped at
-            (:meth:`harness.records.Command.capped`), or None.
-        follows_moving_target: Whether the law follows a moving target, ``p_*(t)`` in
-            ``ControlInput.target`` (:mod:`harness.targets.moving`). Optional; false when
-            absent, and ``target=moving`` then refuses the law.
+
+    Optional members, read through this module: ``needs_robots``
+    (:func:`needs_robots`), ``follows_moving_target`` (:func:`follows_moving_target`),
+    ``alpha``, ``uses`` and ``divides_by_density`` (:func:`law_record`), ``resolution``
+    (:func:`resolution`), ``check`` (:func:`check_parts`); the project's laws also take a
+    speed cap ``v_max`` (length / s) and return :meth:`harness.records.Command.capped`.
     """
 
     gives_field: bool
@@ -157,6 +137,131 @@ class Control(Protocol):
         and the run says so).
         """
         ...
+
+
+@runtime_checkable
+class Identity(Protocol):
+    """What identifies a run in its log (:class:`harness.runs.identity.RunIdentity`)."""
+
+    def records(self) -> dict[str, dict[str, str]]:
+        """The metadata records the log opens with, by name, in order (string values)."""
+        ...
+
+
+# --- optional members ------------------------------------------------------------------
+
+
+def observed(plant: Plant) -> np.ndarray | None:
+    """The robots' positions as the estimator and the law see them: the plant's
+    ``observed`` (with its localisation error) when it has one, else its positions.
+    """
+    return getattr(plant, "observed", plant.positions)
+
+
+def headings(plant: Plant) -> np.ndarray | None:
+    """The robots' headings as unit vectors ``(cos theta, sin theta)``, ``(2, N)``: the
+    plant's ``headings``, None for robots without one (or no robots).
+    """
+    return getattr(plant, "headings", None)
+
+
+REPORTED = ("tracking_error", "command_age")
+"""What a plant with robots may report of the step just taken: ``tracking_error``, the
+mean over robots of ``|velocity applied - velocity commanded|`` (length / s), and
+``command_age``, the mean age of the held commands (s)."""
+
+
+def reported(plant: Plant) -> dict[str, float | None]:
+    """The plant's :data:`REPORTED` numbers (None for one it does not report)."""
+    values = {key: getattr(plant, key, None) for key in REPORTED}
+    return {key: None if v is None else float(v) for key, v in values.items()}
+
+
+def robot_count(plant: Plant) -> int:
+    """The number of robots ``N`` of a plant with robots (its ``n``), 0 without robots."""
+    return int(getattr(plant, "n", 0) or 0) if plant.has_robots else 0
+
+
+def command_link(plant: Plant) -> Any:
+    """The plant's command link (:class:`harness.plants.link.Link`, its ``link``), or
+    None for a plant without one.
+    """
+    return getattr(plant, "link", None)
+
+
+def kernel(plant: Plant) -> tuple[float, bool] | None:
+    """The bandwidth ``h`` (length) and wall images of the KDE that measures the plant
+    (its ``kde``, a :class:`harness.estimators.kde.KDE`), or None when none does.
+    """
+    kde = getattr(plant, "kde", None)
+    return None if kde is None else (float(kde.bandwidth), bool(kde.mirror))
+
+
+def resolution(part: object) -> Any:
+    """A component's optional ``resolution``: for a plant the smallest length its
+    measurement resolves (None: the grid's); for an estimator a function of the
+    measurement's resolution; for a law the smallest length its feedback resolves.
+    """
+    return getattr(part, "resolution", None)
+
+
+def needs_robots(control: Control) -> bool:
+    """Whether ``control`` has no mean-field form (its optional ``needs_robots``): it
+    moves robots and cannot act on a density, so the mean-field plant refuses it and a
+    run with robots has no ``N -> infinity`` limit.
+    """
+    return bool(getattr(control, "needs_robots", False))
+
+
+def follows_moving_target(control: Control) -> bool:
+    """Whether ``control`` follows a moving target ``p_*(t)`` (its optional
+    ``follows_moving_target``); ``target=moving`` refuses a law that does not.
+    """
+    return bool(getattr(control, "follows_moving_target", False))
+
+
+def law_record(control: Control) -> dict[str, Any]:
+    """What a law says of itself for the log's ``theory`` record: its gain ``alpha``
+    (a float, length^4 / s), ``uses`` (a phrase such as ``"estimate, gradient
+    estimate"``) and ``divides_by_density`` (a bool), each when the law has it.
+    """
+    out = {}
+    for name, kind in (("alpha", float), ("uses", str), ("divides_by_density", bool)):
+        value = getattr(control, name, None)
+        if isinstance(value, kind):
+            out[name] = value
+    return out
+
+
+def check_parts(plant: Plant, estimator: Estimator, control: Control) -> None:
+    """Each component's own optional ``check(plant=..., estimator=..., control=...)`` of
+    the others, in that order; raises :class:`~harness.parameters.Incompatible`.
+    """
+    for part in (plant, estimator, control):
+        check = getattr(part, "check", None)
+        if check is not None:
+            check(plant=plant, estimator=estimator, control=control)
+
+
+def require_field(control: Control, where: str) -> None:
+    """Raise :class:`~harness.parameters.Incompatible` naming ``control`` unless the law
+    gives a velocity field (``gives_field``); ``where`` says who needs it and why
+    (``"on plant=meanfield (the density moves by it)"``).
+    """
+    if not control.gives_field:
+        raise Incompatible(
+            "control", type(control).__name__, f"a law with a velocity field {where}"
+        )
+
+
+def refuse_robot_law(control: Control, where: str) -> None:
+    """Raise :class:`~harness.parameters.Incompatible` naming ``control`` when it needs
+    robots (:func:`needs_robots`); ``where`` says who cannot give them.
+    """
+    if needs_robots(control):
+        raise Incompatible(
+            "control", type(control).__name__, f"a law with a mean-field form {where}"
+        )
 
 
 class MemoryEstimate(NamedTuple):

@@ -1,29 +1,32 @@
 """Observers: what watches a run's steps and never steers it.
 
-The run (:func:`harness.runs.run.run`) is a straight line: build, initialise the observers,
-step the loop and hand every step's record to each observer in its config order,
-finalise. Each observer is a component of the config group ``observers``
-(``conf/observers/``: one YAML per observer, ``_target_`` plus its own parameters, its
-cadence among them), composed into one dict by ``conf/observers/default.yaml``:
+The run (:func:`harness.runs.run.run`) is a straight line: build, initialise the
+observers, step the trajectory (:func:`harness.loop.trajectory`), which hands every
+step's record to each observer in its config order, finalise. Each observer is a
+component of the config group ``observers`` (``conf/observers/``: one YAML per observer,
+``_target_`` plus its own parameters, its cadence among them), composed into one dict by
+``conf/observers/default.yaml``:
 
-    metrics   field metrics, the paper's errors (:class:`harness.observers.metrics.FieldMetrics`)
-    swarm     where the robots are (:class:`harness.observers.swarm.SwarmTruth`)
-    estimator the numbers the estimator publishes (:class:`EstimatorMetrics`)
-    guard     the divergence guard (:class:`DivergenceGuard`)
-    live      the live view over Foxglove's WebSocket protocol (:class:`harness.observers.live.LiveView`)
-    log       the MCAP log (:class:`harness.observers.log.McapLogger`)
-    progress  the progress bar (:class:`ProgressBar`)
+    metrics   field metrics, the paper's errors (:mod:`harness.observers.metrics`)
+    swarm     where the robots are (:mod:`harness.observers.swarm`)
+    motion    how much the robots move (:mod:`harness.observers.motion`)
+    estimator the numbers the estimator publishes (:mod:`harness.observers.estimator`)
+    guard     the divergence guard (:mod:`harness.observers.guard`)
+    live      the live view over Foxglove's WebSocket protocol (:mod:`harness.observers.live`)
+    log       the MCAP log (:mod:`harness.observers.log`)
+    progress  the progress bar (:mod:`harness.observers.progress`)
 
 An observer implements :class:`Observer`: ``initialize(run)`` before the loop starts,
 ``handle(record, values)`` after the start and after every step, ``finalize(status)``
 at the end, whatever happened. ``values`` is the step's dict of numbers, which the
 observers before fill and the ones after read: the metric observers add their keys, the
 guard checks them, the logger writes them. Observers that compute come before those that
-show; those that only compute say so (``computes = True``), and an in-memory
-simulation (:func:`harness.api.simulate`) runs just them. Run-time arguments an
-observer's constructor may name (the builder passes the ones
-it names): ``grid``, ``target``, ``control``, ``plant``, ``steps`` (the run's last
-step) and ``identity`` (:class:`harness.runs.identity.RunIdentity`).
+show; those that only compute say so (``computes = True``, :func:`computes`), and an
+in-memory simulation (:func:`harness.api.simulate`) runs just them. An observer that acts
+every so many steps keeps a :class:`Cadence`. Run-time arguments an observer's
+constructor may name (the builder passes the ones it names): ``grid``, ``target``,
+``control``, ``plant``, ``limit`` (the loop's ``N -> infinity`` limit, or None),
+``steps`` (the run's last step) and ``identity`` (:class:`harness.protocols.Identity`).
 """
 
 from __future__ import annotations
@@ -67,6 +70,24 @@ class Status:
     wall_s: float
 
 
+@dataclass(frozen=True)
+class Cadence:
+    """The steps at which an observer acts: every ``every`` steps from the start, and the
+    run's last step.
+
+    Args:
+        every: Steps between two (``>= 1``, checked by the observer that names it).
+        last: The run's last step.
+    """
+
+    every: int
+    last: int
+
+    def due(self, step: int) -> bool:
+        """Whether the observer acts at ``step``: ``step mod every = 0`` or the last."""
+        return step % self.every == 0 or step == self.last
+
+
 @runtime_checkable
 class Observer(Protocol):
     """Sees each step of a run; never steers it (module docstring)."""
@@ -82,3 +103,17 @@ class Observer(Protocol):
     def finalize(self, status: Status) -> None:
         """At the end, whatever happened (also after an exception)."""
         ...
+
+
+def computes(observer: Observer) -> bool:
+    """Whether ``observer`` only computes (its optional ``computes``): it adds to the
+    step's values and writes or shows nothing, so an in-memory simulation runs it.
+    """
+    return bool(getattr(observer, "computes", False))
+
+
+def seconds(observer: Observer) -> float:
+    """The wall time (s) ``observer`` spent on the steps, when it keeps it (its optional
+    ``seconds``; the logger does), else 0.
+    """
+    return float(getattr(observer, "seconds", 0.0))

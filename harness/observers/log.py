@@ -63,13 +63,13 @@ from mcap_protobuf.schema import register_schema
 
 from harness.estimators.distributed.metrics import NETWORK_KEYS
 from harness.grid import Grid
-from harness.observers.base import RunContext, Status
+from harness.observers.base import Cadence, RunContext, Status
 from harness.observers.metrics import FIELD_KEYS
 from harness.observers.motion import DISAGREEMENT_KEY, MOTION_KEYS, ROBOT_KEYS
 from harness.observers.swarm import SWARM_KEYS
 from harness.parameters import integer
+from harness.protocols import Identity
 from harness.records import StepRecord
-from harness.runs.identity import RunIdentity
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
 
@@ -81,7 +81,9 @@ LOG_FILE = "run.mcap"
 """The log's file name in the run directory."""
 
 
-METRIC_KEYS = FIELD_KEYS + SWARM_KEYS + MOTION_KEYS + ROBOT_KEYS + (DISAGREEMENT_KEY,) + NETWORK_KEYS
+METRIC_KEYS = (
+    FIELD_KEYS + SWARM_KEYS + MOTION_KEYS + ROBOT_KEYS + (DISAGREEMENT_KEY,) + NETWORK_KEYS
+)
 """The keys of every ``/metrics`` message, in log order, as the modules that compute them
 declare them: the field metrics (:data:`harness.observers.metrics.FIELD_KEYS`), the
 swarm metrics (:data:`harness.observers.swarm.SWARM_KEYS`), the motion metrics and what
@@ -248,7 +250,7 @@ class McapLogger:
         grid: Grid,
         target: Target,
         steps: int,
-        identity: RunIdentity,
+        identity: Identity,
         field_every: int,
         positions_every: int,
     ) -> None:
@@ -257,6 +259,8 @@ class McapLogger:
         self.field_every = integer("field_every", field_every, 1)
         self.positions_every = integer("positions_every", positions_every, 1)
         self.total_steps = steps
+        self.field_cadence = Cadence(self.field_every, steps)
+        self.positions_cadence = Cadence(self.positions_every, steps)
         self.path = Path(LOG_FILE)
         self.live: LiveServer | None = None
         self.run: RunContext | None = None
@@ -372,8 +376,7 @@ class McapLogger:
     def _handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
         payload = {k: _json_number(metric_values.get(k)) for k in METRIC_KEYS}
         self._write("/metrics", rec.t, json.dumps(payload).encode(), self._metrics_schema, "json")
-        last = rec.step == self.total_steps
-        if rec.step % self.field_every == 0 or last:
+        if self.field_cadence.due(rec.step):
             t = rec.t
             self.write_grid("/fields/p_true", t, rec.p_true)
             if rec.measurement is not None:
@@ -387,7 +390,7 @@ class McapLogger:
                 self.write_grid("/fields/velocity", t, rec.command.field.centres)
             for name, values in rec.estimate.fields.items():
                 self.write_grid(f"/fields/{name}", t, values)
-        if rec.positions is not None and (rec.step % self.positions_every == 0 or last):
+        if rec.positions is not None and self.positions_cadence.due(rec.step):
             msg = points_message(rec.t, rec.positions)
             self._write(
                 "/swarm/positions", rec.t, msg.SerializeToString(), self._points_schema, "protobuf"

@@ -26,7 +26,7 @@ from harness.grid import Grid
 from harness.observers.base import RunContext, Status
 from harness.observers.theory import lyapunov, poincare_constant
 from harness.parameters import number
-from harness.protocols import Control
+from harness.protocols import Control, law_record
 from harness.records import StepRecord
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
@@ -103,15 +103,13 @@ class FieldMetrics:
         """``poincare_lambda`` and ``rate_exact`` into the theory record."""
         lam = poincare_constant(self.grid, self.target.p)
         run.theory["poincare_lambda"] = repr(lam)
-        alpha = getattr(self.control, "alpha", None)
-        if isinstance(alpha, float):
-            run.theory["rate_exact"] = repr((alpha + self.sigma) * lam)
-        uses = getattr(self.control, "uses", None)
-        if isinstance(uses, str):
-            run.theory["law_uses"] = uses
-        divides = getattr(self.control, "divides_by_density", None)
-        if isinstance(divides, bool):
-            run.theory["law_divides_by_density"] = "yes" if divides else "no"
+        law = law_record(self.control)
+        if "alpha" in law:
+            run.theory["rate_exact"] = repr((law["alpha"] + self.sigma) * lam)
+        if "uses" in law:
+            run.theory["law_uses"] = law["uses"]
+        if "divides_by_density" in law:
+            run.theory["law_divides_by_density"] = "yes" if law["divides_by_density"] else "no"
 
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
         """The step's field metrics, against the target at the step's time."""

@@ -43,6 +43,7 @@ import numpy as np
 from harness.compiled.agents import speed_sums
 from harness.grid import Grid
 from harness.observers.base import RunContext, Status
+from harness.protocols import REPORTED, Plant, reported
 from harness.records import StepRecord
 from harness.velocity import interpolate
 
@@ -50,8 +51,9 @@ MOTION_KEYS = ("effort", "mean_speed", "peak_speed")
 """The motion metrics, in log order."""
 
 
-ROBOT_KEYS = ("tracking_error", "command_age")
-"""What the plant reports of the step just taken (module docstring), in log order."""
+ROBOT_KEYS = REPORTED
+"""What the plant reports of the step just taken (:data:`harness.protocols.REPORTED`),
+in log order."""
 
 
 DISAGREEMENT_KEY = "command_disagreement"
@@ -118,7 +120,7 @@ class Motion:
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
 
-    def __init__(self, grid: Grid, plant: object = None) -> None:
+    def __init__(self, grid: Grid, plant: Plant) -> None:
         self.grid = grid
         self.plant = plant
 
@@ -129,9 +131,7 @@ class Motion:
         """The step's motion metrics."""
         values.update(motion(self.grid, rec))
         values[DISAGREEMENT_KEY] = command_disagreement(rec)
-        for key in ROBOT_KEYS:
-            value = getattr(self.plant, key, None)
-            values[key] = None if value is None else float(value)
+        values.update(reported(self.plant))
 
     def finalize(self, status: Status) -> None:
         """Nothing to close."""

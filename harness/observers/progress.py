@@ -7,7 +7,7 @@ from typing import Any
 
 from tqdm.auto import tqdm
 
-from harness.observers.base import RunContext, Status
+from harness.observers.base import Cadence, RunContext, Status
 from harness.parameters import ParameterError, integer
 from harness.records import StepRecord
 
@@ -30,6 +30,7 @@ class ProgressBar:
             raise ParameterError("show", show, f"one of {', '.join(PROGRESS)}")
         self.steps, self.show = steps, PROGRESS[show]
         self.every = integer("every", every, 1)
+        self.cadence = Cadence(self.every, steps)
         self.bar: Any = None
 
     def initialize(self, run: RunContext) -> None:
@@ -39,7 +40,7 @@ class ProgressBar:
 
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
         """Update every ``every`` steps and at the last."""
-        if rec.step == 0 or not (rec.step % self.every == 0 or rec.step == self.steps):
+        if rec.step == 0 or not self.cadence.due(rec.step):
             return
         err = values.get("phat_target_l2")
         text = f"t={rec.t:.2f} s" + ("" if err is None else f" |p_hat-p*|={err:.3e}")

@@ -37,10 +37,11 @@ from harness.estimators.kde import KDE
 from harness.estimators.smoothing import Smoother, smoothed_target
 from harness.grid import Grid
 from harness.observers import floor_cache, swarm_metrics
-from harness.observers.base import RunContext, Status
+from harness.observers.base import Cadence, RunContext, Status
 from harness.observers.floor_cache import FloorCache
 from harness.observers.swarm_metrics import TargetMeasure, swarm_w2, w2_method
 from harness.parameters import integer, require
+from harness.plants.limit import Limit
 from harness.records import StepRecord
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
@@ -93,9 +94,10 @@ class SwarmTruth:
         seed: The run's seed.
         floor_cache: Directory of the floor cache (``~`` expanded); None or ``""``:
             the floors are computed every run.
-        plant: The run's plant (run-time argument): without an ``N -> infinity`` limit
-            (its ``has_limit`` false: a law without a mean-field form) the two terms
-            against the limit, ``limit_swarm_l2`` and ``limit_target_l2``, are None.
+        limit: The loop's ``N -> infinity`` limit (run-time argument,
+            :class:`harness.plants.limit.Limit`): without one (a law without a
+            mean-field form) the two terms against the limit, ``limit_swarm_l2`` and
+            ``limit_target_l2``, are None.
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
@@ -113,14 +115,15 @@ class SwarmTruth:
         floor_draws: int = 30,
         seed: int = 0,
         floor_cache: str | None = None,
-        plant: object = None,
+        limit: Limit | None = None,
     ) -> None:
         self.path = TargetPath(target)
         self.grid, self.target = grid, self.path.floor_target()
-        self.has_limit = bool(getattr(plant, "has_limit", True))
+        self.has_limit = limit is not None
         self.every = integer("every", every, 1)
         self.w2_every = integer("w2_every", w2_every, 1)
-        self.total_steps = steps
+        self.cadence = Cadence(self.every, steps)
+        self.w2_cadence = Cadence(self.w2_every, steps)
         self.floor_draws = integer("floor_draws", floor_draws, 2)
         self.seed = integer("seed", seed, 0)
         require(
@@ -156,8 +159,7 @@ class SwarmTruth:
         ``phat_smoothed_target_l2`` = ``||p_hat - K_h p_*||`` at every step.
         """
         out: dict[str, float | None] = dict.fromkeys(SWARM_KEYS)
-        last = rec.step == self.total_steps
-        on_step = rec.positions is not None and (rec.step % self.every == 0 or last)
+        on_step = rec.positions is not None and self.cadence.due(rec.step)
         smoothed, smoothed_cells = self.smoothed_at(rec.t, on_step and self.has_limit)
         out["phat_smoothed_target_l2"] = self.grid.l2(rec.estimate.p_hat - smoothed)
         if rec.positions is None or not on_step:
@@ -171,7 +173,7 @@ class SwarmTruth:
             smooth_limit = self.smoother(rec.p_true)[0]
             out["limit_swarm_l2"] = g.l2(smooth_swarm - smooth_limit)
             out["limit_target_l2"] = g.l2(smooth_limit - smoothed_cells)
-        if rec.step % self.w2_every == 0 or last:
+        if self.w2_cadence.due(rec.step):
             n = rec.positions.shape[1]
             measure = self.measure(n) if not self.path.moves else self.measure_at(n, rec.t)
             out["swarm_w2"] = swarm_w2(rec.positions, measure)

@@ -66,19 +66,15 @@ import scipy.sparse as sp
 
 from harness.compiled.agents import euler_maruyama_step
 from harness.estimators.kde import KDE
-from harness.estimators.smoothing import Smoother
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import flag, integer, number, require
-from harness.plants.link import command_link
+from harness.plants.link import Link, command_link
 from harness.protocols import (
-    Control,
     MemoryEstimate,
     default_memory,
-    needs_robots,
-    require_field,
 )
-from harness.records import Command, ControlInput, Estimate, Measurement
+from harness.records import Command, Measurement
 from harness.targets.densities import Density
 from harness.velocity import VelocityField, interpolate
 
@@ -222,6 +218,32 @@ class Swarm:
         self.step_robots(v, dt, rng)
         return np.asarray(v, dtype=float)
 
+    def follow(self, command: Command, link: Link, dt: float, rng: np.random.Generator) -> float:
+        """One step under what each robot holds from ``link`` (which has transmitted
+        ``command``); returns the tracking error, the mean over robots of ``|applied -
+        commanded|`` (length / s). Through the ideal link ideal integrators move by the
+        command itself (its own velocities, else the field's interpolant, :meth:`step`)
+        and apply exactly what they are commanded (error 0); otherwise by what each holds
+        (:meth:`follow_held`).
+        """
+        if not link.ideal:
+            return self.follow_held(link, dt, rng)
+        if command.robots is not None:
+            self.step_robots(command.robots, dt, rng)
+        else:
+            assert command.field is not None
+            self.step(command.field, dt, rng)
+        return 0.0
+
+    def follow_held(self, link: Link, dt: float, rng: np.random.Generator) -> float:
+        """One step under the velocity each robot holds from ``link`` at its position
+        (:meth:`move`); returns the tracking error (:meth:`follow`).
+        """
+        held = link.velocities(self.positions, self.grid)
+        applied = self.move(held, dt, rng)
+        # tracking error: (1/N) sum_k |applied_k - commanded_k|
+        return float(np.mean(np.hypot(*(applied - held))))
+
     def step_reference(self, v: VelocityField, dt: float, rng: np.random.Generator) -> np.ndarray:
         """Plain-numpy statement of :meth:`step` (same random draws, same result)."""
         g = self.grid
@@ -253,18 +275,24 @@ def spread_values(nominal: float, spread: float, n: int, rng: np.random.Generato
     return np.asarray(nominal * (1.0 + spread * rng.uniform(-1.0, 1.0, n)))
 
 
-def _spread(spread: float) -> float:
+def check_spread(spread: float) -> float:
+    """The relative spread ``0 <= s < 1`` of per-robot values (:func:`spread_values`),
+    refused otherwise (:class:`~harness.parameters.ParameterError` naming ``spread``).
+    """
     s = number("spread", spread, 0.0)
     require(s < 1, "spread", spread, "below 1 (a relative half-width; values stay positive)")
     return s
 
 
 class Agents:
-    """``N`` robots measured by their KDE, with the loop's ``N -> infinity`` limit.
+    """``plant=agents``: ``N`` ideal integrators (eq. ``Langevin equation``, :class:`Swarm`)
+    measured by their KDE, behind the command link; the constructor every robot plant
+    shares (:class:`harness.plants.unicycles.Unicycles` and
+    :class:`harness.plants.double_integrators.DoubleIntegrators` add their own parameters
+    and robots, :meth:`_robots`).
 
     Args:
-        grid, model, init, control: Run-time arguments (grid, Fokker-Planck model,
-            ``p_0``, the control law).
+        grid, model, init: Run-time arguments (grid, Fokker-Planck model, ``p_0``).
         n: Number of robots ``N >= 1``.
         bandwidth: KDE bandwidth ``h > 0`` (length), at most the domain side.
         mirror: Wall images in the KDE.
@@ -277,11 +305,11 @@ class Agents:
             the robots move from their true positions and the swarm metrics use the true
             ones. 0 draws nothing.
         seed: The run's seed, for the localisation error's stream and the link's.
-        link_period, link_latency, link_loss: The command link (:class:`harness.plants.link.Link`):
-            time between broadcasts (s; None: every step), delay to arrival (s) and
-            the probability that a robot misses a broadcast. The defaults are the
-            ideal link, under which the robots move by the code path of a run without
-            one.
+        link_period, link_latency, link_loss: The command link
+            (:class:`harness.plants.link.Link`): time between broadcasts (s; None: every
+            step), delay to arrival (s) and the probability that a robot misses a
+            broadcast. The defaults are the ideal link, under which the robots move by
+            the code path of a run without one.
         dt: The step (s), which the link's period and latency count in.
 
     Per step the plant reports ``tracking_error``, the mean over robots of
@@ -291,10 +319,9 @@ class Agents:
     ``command_age``, the mean age of the held commands (s, :class:`harness.plants.link.Link`);
     both None before the first step.
 
-    Without a mean-field form of the law (``needs_robots``, a law that moves each
-    robot itself, such as a Markov chain or an assignment) there is no limit to
-    compute: ``density`` is then the robots' histogram (robots per cell over ``N``
-    times the cell area, 1 / length^2), and ``has_limit`` is false.
+    Its ``density`` is the robots' histogram (robots per cell over ``N`` times the cell
+    area, 1 / length^2); the run measures its errors against the loop's ``N -> infinity``
+    limit instead when the law has a mean-field form (:mod:`harness.plants.limit`).
     """
 
     def __init__(
@@ -302,7 +329,6 @@ class Agents:
         grid: Grid,
         model: FokkerPlanck,
         init: Density,
-        control: Control,
         n: int,
         bandwidth: float,
         mirror: bool = True,
@@ -314,7 +340,7 @@ class Agents:
         link_loss: float = 0.0,
         dt: float | None = None,
     ) -> None:
-        self.grid, self.model, self.init, self.control = grid, model, init, control
+        self.grid, self.model, self.init = grid, model, init
         self.localisation_noise = number("localisation_noise", localisation_noise, 0.0)
         quarter = min(grid.x1 - grid.x0, grid.y1 - grid.y0) / 4
         require(
@@ -323,18 +349,14 @@ class Agents:
         )  # fmt: skip
         self.seed = integer("seed", seed, 0)
         self._sight = np.random.default_rng([self.seed, 3])
-        self.has_limit = not needs_robots(control)
-        self.density = init.on_grid(grid)
         self.n = integer("n", n, 1)
         h = number("bandwidth", bandwidth, 0.0, strict=True)
         side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
         require(h <= side, "bandwidth", bandwidth, f"at most the domain side {side:g}")
         require(method in KDE.METHODS, "method", method, f"one of {', '.join(KDE.METHODS)}")
         self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method)
-        self.smoother = Smoother(grid, h, mirror)
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
-        self.t = 0.0
         self.link = command_link(link_period, link_latency, link_loss, dt, self.seed)
         self.tracking_error: float | None = None
         self.command_age: float | None = None
@@ -372,6 +394,15 @@ class Agents:
         return None if self.swarm is None else self.swarm.positions
 
     @property
+    def density(self) -> np.ndarray:
+        """The robots' histogram ``(ny, nx)`` (1 / length^2, :meth:`Swarm.histogram`);
+        ``p_0`` on the grid before :meth:`start`.
+        """
+        if self.swarm is None:
+            return self.init.on_grid(self.grid)
+        return self.swarm.histogram()
+
+    @property
     def observed(self) -> np.ndarray | None:
         """The positions as the estimator and the law see them ``(2, N)`` (length):
         the true ones plus the localisation error (the class docstring).
@@ -392,10 +423,6 @@ class Agents:
             reflect(seen[1], g.y0, g.y1)
             self._observed = seen
 
-    def check(self, control: Control, **parts: object) -> None:
-        """The limit ``p_inf`` moves by the law's field: refuse a law without one."""
-        require_field(control, "on plant=agents (its N -> infinity limit moves by the field)")
-
     headings: np.ndarray | None = None
     """Robot headings as unit vectors ``(cos theta, sin theta)``, ``(2, N)``, for robots
     that have one, else None."""
@@ -410,58 +437,22 @@ class Agents:
         self.link.start(self.n)
         self.tracking_error = self.command_age = None
         self._steps = 0
-        self.t = 0.0
-        if not self.has_limit:
-            self.density = self.swarm.histogram()
         self._sight = np.random.default_rng([self.seed, 3])  # the stream restarts
         self._observe()
-
-    def move_robots(self, command: Command, dt: float, rng: np.random.Generator) -> None:
-        """The command through the link and the robots over the step under what each
-        holds; sets ``tracking_error``.
-        """
-        assert self.swarm is not None, "call start first"
-        self.link.transmit(command, self._steps)
-        if self.link.ideal and type(self.swarm) is Swarm:  # a run without a link
-            if command.robots is not None:
-                self.swarm.step_robots(command.robots, dt, rng)
-            else:
-                assert command.field is not None
-                self.swarm.step(command.field, dt, rng)
-            self.tracking_error = 0.0
-        else:
-            field = self.link.common_field()
-            move_field = getattr(self.swarm, "move_field", None)
-            if field is not None and move_field is not None:  # one pass for a shared field
-                self.tracking_error = move_field(field, dt, rng)
-            else:
-                held = self.link.velocities(self.swarm.positions, self.grid)
-                applied = self.swarm.move(held, dt, rng)
-                # tracking error: (1/N) sum_k |applied_k - commanded_k|
-                self.tracking_error = float(np.mean(np.hypot(*(applied - held))))
 
     def advance(
         self, command: Command, a: sp.csr_matrix | None, dt: float, rng: np.random.Generator
     ) -> None:
-        """The command through the link; the robots over the step under what each
-        holds (their own velocities when the command has them, else the field's
-        interpolant; ideal integrators by Euler-Maruyama with reflection); the limit
-        ``p_inf`` under the law's field of its own noise-free KDE and of ``p_inf``
-        itself (held over the step, like the command), or the robots' histogram
-        without a limit; then the localisation error of the new positions.
+        """The command through the link; the robots over the step under what each holds
+        (:meth:`Swarm.follow`: ideal integrators by Euler-Maruyama with reflection, under
+        their own velocities when the command has them, else the field's interpolant);
+        then the localisation error of the new positions.
         """
-        self.move_robots(command, dt, rng)
-        assert self.swarm is not None
+        assert self.swarm is not None, "call start first"
+        self.link.transmit(command, self._steps)
+        self.tracking_error = self.swarm.follow(command, self.link, dt, rng)
         self.command_age = self.link.age
         self._steps += 1
-        if self.has_limit:
-            estimate = Estimate(*self.smoother(self.density))
-            limit = self.control(ControlInput(self.t, estimate, density=self.density))
-            assert limit.field is not None
-            self.density = self.model.step(self.density, limit.field, dt)
-        else:
-            self.density = self.swarm.histogram()
-        self.t += dt
         self._observe()
 
     def measure(self, rng: np.random.Generator) -> Measurement:

@@ -36,31 +36,29 @@ and the filters' transport model do not carry.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from harness.compiled.robots import double_integrator_step
-from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import number
-from harness.plants.agents import Agents, Swarm, _spread, draw_normals, reflect, spread_values
-from harness.protocols import (
-    Control,
-)
-from harness.targets.densities import Density
+from harness.plants.agents import Agents, Swarm, check_spread, draw_normals, reflect, spread_values
+from harness.plants.link import Link
+from harness.records import Command
 
 
 class DoubleIntegrators(Agents):
-    """``N`` acceleration-limited robots (:mod:`harness.plants.double_integrators`) measured
-    by their KDE, with the limit ``p_inf`` of ideal integrators beside them
-    (:class:`Agents`).
+    """``plant=double_integrators``: ``N`` acceleration-limited robots (module docstring)
+    measured by their KDE, behind the command link (:class:`~harness.plants.agents.Agents`).
 
     Args:
-        grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
-            seed, link_period, link_latency, link_loss, dt: As :class:`Agents`.
+        robots: The parameters every robot plant takes, as
+            :class:`~harness.plants.agents.Agents`.
         a_max: Nominal acceleration limit (length / s^2), ``> 0``.
         gain: Nominal velocity-loop gain ``g`` (1 / s), ``> 0``.
         spread: Relative spread of the per-robot limit and gain, as for
-            :class:`Unicycles` (drawn from the stream ``[seed, 4]``: ``a_max``, then
+            :class:`~harness.plants.unicycles.Unicycles` (drawn from the stream ``[seed, 4]``: ``a_max``, then
             ``gain``).
 
     The robots start at rest.
@@ -71,32 +69,12 @@ class DoubleIntegrators(Agents):
     applied velocities."""
 
     def __init__(
-        self,
-        grid: Grid,
-        model: FokkerPlanck,
-        init: Density,
-        control: Control,
-        n: int,
-        bandwidth: float,
-        mirror: bool = True,
-        method: str = "auto",
-        localisation_noise: float = 0.0,
-        seed: int = 0,
-        link_period: float | None = None,
-        link_latency: float = 0.0,
-        link_loss: float = 0.0,
-        dt: float | None = None,
-        a_max: float = 0.5,
-        gain: float = 5.0,
-        spread: float = 0.0,
+        self, a_max: float = 0.5, gain: float = 5.0, spread: float = 0.0, **robots: Any
     ) -> None:
-        super().__init__(
-            grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
-            seed, link_period, link_latency, link_loss, dt,
-        )  # fmt: skip
+        super().__init__(**robots)
         self.a_max = number("a_max", a_max, 0.0, strict=True)
         self.gain = number("gain", gain, 0.0, strict=True)
-        self.spread = _spread(spread)
+        self.spread = check_spread(spread)
 
     def _robots(self, positions: np.ndarray) -> Swarm:
         """Double integrators at rest at ``positions``, limits from ``[seed, 4]``."""
@@ -134,6 +112,12 @@ class DoubleIntegratorSwarm(Swarm):
         self.a_max = np.array(a_max, dtype=float).reshape(n)
         self.gain = np.array(gain, dtype=float).reshape(n)
         self.applied = np.zeros_like(self.positions)
+
+    def follow(self, command: Command, link: Link, dt: float, rng: np.random.Generator) -> float:
+        """One step under the velocity each robot holds from ``link``
+        (:meth:`~harness.plants.agents.Swarm.follow_held`); the tracking error (length / s).
+        """
+        return self.follow_held(link, dt, rng)
 
     def move(self, v: np.ndarray, dt: float, rng: np.random.Generator) -> np.ndarray:
         """One hold of ``dt`` (s) under the commanded velocities ``v`` ``(2, N)``

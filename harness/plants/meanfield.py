@@ -24,11 +24,11 @@ from harness.targets.densities import Density
 
 
 class MeanField:
-    """The mean-field density, measured with KDE-like noise (no robots).
+    """``plant=meanfield``: the mean-field density, measured with KDE-like noise (no
+    robots).
 
     Args:
-        grid, model, init, control: Run-time arguments (``control`` is not used: the
-            density moves under the applied velocity).
+        grid, model, init: Run-time arguments.
         robots: Swarm size ``N >= 1`` whose KDE noise is imitated.
         bandwidth: KDE bandwidth ``h > 0`` (length) whose noise is imitated.
         localisation_noise: Must be 0: without robots there are no positions to
@@ -38,20 +38,13 @@ class MeanField:
     """
 
     positions = None
-    observed = None
-    headings = None
-    tracking_error = None
-    command_age = None
     has_robots = False
-    has_limit = True
-    resolution = None  # white noise per cell: grid resolution
 
     def __init__(
         self,
         grid: Grid,
         model: FokkerPlanck,
         init: Density,
-        control: Control,
         robots: int,
         bandwidth: float,
         localisation_noise: float = 0.0,

@@ -59,29 +59,26 @@ for more; and robots pointing away from ``v`` move more slowly for a time of ord
 
 from __future__ import annotations
 
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 
 from harness.compiled.robots import unicycle_step
-from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import number
-from harness.plants.agents import Agents, Swarm, _spread, draw_normals, reflect, spread_values
-from harness.protocols import (
-    Control,
-)
-from harness.targets.densities import Density
+from harness.plants.agents import Agents, Swarm, check_spread, draw_normals, reflect, spread_values
+from harness.plants.link import Link
+from harness.records import Command
 from harness.velocity import VelocityField
 
 
 class Unicycles(Agents):
-    """``N`` unicycles (:mod:`harness.plants.unicycles`) measured by their KDE, with the
-    limit ``p_inf`` of ideal integrators beside them (:class:`Agents`).
+    """``plant=unicycles``: ``N`` unicycles (module docstring) measured by their KDE, behind
+    the command link (:class:`~harness.plants.agents.Agents`).
 
     Args:
-        grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
-            seed, link_period, link_latency, link_loss, dt: As :class:`Agents`.
+        robots: The parameters every robot plant takes, as
+            :class:`~harness.plants.agents.Agents`.
         v_max: Nominal forward-speed limit (length / s), ``> 0``.
         omega_max: Nominal turn-rate limit (rad / s), ``> 0``.
         lookahead: Nominal look-ahead ``l`` of the feedback linearisation (length),
@@ -102,33 +99,17 @@ class Unicycles(Agents):
 
     def __init__(
         self,
-        grid: Grid,
-        model: FokkerPlanck,
-        init: Density,
-        control: Control,
-        n: int,
-        bandwidth: float,
-        mirror: bool = True,
-        method: str = "auto",
-        localisation_noise: float = 0.0,
-        seed: int = 0,
-        link_period: float | None = None,
-        link_latency: float = 0.0,
-        link_loss: float = 0.0,
-        dt: float | None = None,
         v_max: float = 0.1,
         omega_max: float = 3.0,
         lookahead: float = 0.01,
         spread: float = 0.0,
+        **robots: Any,
     ) -> None:
-        super().__init__(
-            grid, model, init, control, n, bandwidth, mirror, method, localisation_noise,
-            seed, link_period, link_latency, link_loss, dt,
-        )  # fmt: skip
+        super().__init__(**robots)
         self.v_max = number("v_max", v_max, 0.0, strict=True)
         self.omega_max = number("omega_max", omega_max, 0.0, strict=True)
         self.lookahead = number("lookahead", lookahead, 0.0, strict=True)
-        self.spread = _spread(spread)
+        self.spread = check_spread(spread)
 
     @property
     def headings(self) -> np.ndarray | None:  # type: ignore[override]
@@ -207,6 +188,17 @@ class UnicycleSwarm(Swarm):
             float(dt), g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
         )  # fmt: skip
         return self.applied
+
+    def follow(self, command: Command, link: Link, dt: float, rng: np.random.Generator) -> float:
+        """One step under what each robot holds from ``link``: in one compiled pass when
+        every robot holds the same field (:meth:`move_field`), else by the velocity each
+        holds (:meth:`~harness.plants.agents.Swarm.follow_held`); returns the tracking
+        error (length / s).
+        """
+        field = link.common_field()
+        if field is not None:
+            return self.move_field(field, dt, rng)
+        return self.follow_held(link, dt, rng)
 
     def move_field(self, field: VelocityField, dt: float, rng: np.random.Generator) -> float:
         """:meth:`move` with every robot commanded the bilinear interpolant of ``field``'s

@@ -15,31 +15,29 @@ from __future__ import annotations
 import functools
 import inspect
 import re
-from dataclasses import dataclass, field
 from typing import Any
 
 import hydra.utils
-import numpy as np
 from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.loop import Experiment
 from harness.observers.base import Observer
 from harness.parameters import Incompatible, ParameterError
-from harness.protocols import Control, Estimator, Plant
+from harness.plants.limit import Limit
+from harness.protocols import Control, Estimator, Plant, check_parts
 from harness.runs.checks import (
     SHARED_BLOCKS,
     ConfigError,
-    DiskNeed,
     check_built,
     check_memory,
     check_resolvable,
     check_shared,
     check_unread,
     density_on_grid,
-    disk_need,
     target_on_grid,
 )
 from harness.runs.identity import RunIdentity, choices, resolved
@@ -241,15 +239,25 @@ def resolve(cfg: DictConfig) -> dict[str, Any]:
 
 
 def _check_parts(plant: Plant, estimator: Estimator, control: Control) -> None:
-    """Each component's own ``check`` of the others (:mod:`harness.protocols`)."""
-    for part in (plant, estimator, control):
-        check = getattr(part, "check", None)
-        if check is None:
-            continue
-        try:
-            check(plant=plant, estimator=estimator, control=control)
-        except Incompatible as err:
-            raise ConfigError(err.name, err.value, err.allowed) from None
+    """Each component's own ``check`` of the others (:func:`harness.protocols.check_parts`),
+    refused naming the config group.
+    """
+    try:
+        check_parts(plant, estimator, control)
+    except Incompatible as err:
+        raise ConfigError(err.name, err.value, err.allowed) from None
+
+
+def _limit(
+    plant: Plant, control: Control, grid: Grid, model: FokkerPlanck, init: Density
+) -> Limit | None:
+    """The loop's ``N -> infinity`` limit (:meth:`harness.plants.limit.Limit.of`), refused
+    naming ``control`` for a law it cannot follow.
+    """
+    try:
+        return Limit.of(plant, control, grid, model, init)
+    except Incompatible as err:
+        raise ConfigError(err.name, err.value, err.allowed) from None
 
 
 def _on_path(cfg: DictConfig, density: Density, grid: Grid) -> Density:
@@ -277,50 +285,14 @@ def _check_follows(target: Target, control: Control) -> None:
         )
 
 
-@dataclass(frozen=True)
-class Experiment:
-    """Everything one run needs (see :func:`build`).
-
-    Attributes:
-        grid, target, init, p0, model, plant, estimator, control: The components.
-        observers: The observers by name, in the order they see each step.
-        seed: The run's seed.
-        dt: Step (s).
-        steps: Number of steps.
-        identity: The config and provenance records of the log.
-        disk: The log's size estimate.
-        keys: The public config key of each observer parameter
-            (``"observers.live.port" -> "log.live_port"``), for errors raised when the
-            run starts.
-        spent: Set by :func:`harness.runs.run.run`: the components keep their state, so an
-            experiment runs once.
-    """
-
-    grid: Grid
-    target: Target
-    init: Density
-    p0: np.ndarray
-    model: FokkerPlanck
-    plant: Plant
-    estimator: Estimator
-    control: Control
-    observers: dict[str, Observer]
-    seed: int
-    dt: float
-    steps: int
-    identity: RunIdentity
-    disk: DiskNeed
-    keys: dict[str, str]
-    spent: list[bool] = field(default_factory=list, compare=False, repr=False)
-
-
 def build(cfg: DictConfig) -> Experiment:
     """Everything a run of ``cfg`` needs, checked; the only reader of the config.
 
     In order: every interpolation resolves, every key is read by something, the
     shared blocks, the memory the run will need (estimated from the components'
     parameters before any of them allocates), the components, each component's own
-    check of the others, the step bound, the observers, the log's size and identity.
+    check of the others, the loop's ``N -> infinity`` limit, the step bound, the
+    observers and the run's identity.
     Building draws no random numbers (robots are placed by ``plant.start(rng)``),
     writes nothing and opens nothing (observers open files and ports when the run
     starts).
@@ -335,33 +307,32 @@ def build(cfg: DictConfig) -> Experiment:
     check_memory(cfg, grid)
     target = target_on_grid(_on_path(cfg, component(cfg, "target", data), grid), grid)
     init = component(cfg, "init", data)
-    p0 = density_on_grid("init", init, grid)
+    density_on_grid("init", init, grid)
     model = FokkerPlanck(grid, cfg.dynamics.sigma)
     control = component(cfg, "control", data, target=target)
     _check_follows(target, control)
-    plant = component(cfg, "plant", data, grid=grid, model=model, init=init, control=control)
+    plant = component(cfg, "plant", data, grid=grid, model=model, init=init)
     estimator = component(cfg, "estimator", data, grid=grid, model=model)
     _check_parts(plant, estimator, control)
+    limit = _limit(plant, control, grid, model, init)
     check_built(cfg, grid, target, control, plant, estimator)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
     identity = RunIdentity(data, int(cfg.seed), choices(cfg))
     watching = observers(
-        cfg, data, grid=grid, target=target, control=control, plant=plant, steps=steps,
-        identity=identity,
+        cfg, data, grid=grid, target=target, control=control, plant=plant, limit=limit,
+        steps=steps, identity=identity,
     )  # fmt: skip
-    robots = int(getattr(plant, "n", 0) or 0) if plant.has_robots else 0
     keys = {
         f"observers.{name}.{param}": key
         for name in watching
         for param, key in public_keys(cfg, f"observers.{name}").items()
     }
     return Experiment(
-        grid, target, init, p0, model, plant, estimator, control,
+        grid, target, init, model, plant, limit, estimator, control,
         observers=watching,
         seed=int(cfg.seed),
         dt=float(cfg.sim.dt),
         steps=steps,
         identity=identity,
-        disk=disk_need(watching, robots, keys, steps),
         keys=keys,
     )  # fmt: skip

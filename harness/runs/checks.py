@@ -26,8 +26,9 @@ from omegaconf.errors import OmegaConfBaseException
 from harness.control.field import sampled_data_dt_bound
 from harness.estimators.kde import KDE
 from harness.grid import Grid
+from harness.loop import Experiment
 from harness.parameters import ParameterError, flag, integer, number
-from harness.protocols import Control, default_memory, memory_estimate, needs_robots
+from harness.protocols import Control, default_memory, memory_estimate, needs_robots, robot_count
 from harness.targets.densities import Density, Target
 
 MAX_STEPS = 10_000_000
@@ -479,23 +480,24 @@ class DiskNeed:
     steps: int
 
 
-def disk_need(observers: dict[str, Any], robots: int, keys: dict[str, str], steps: int) -> DiskNeed:
-    """What the observers that write files say they will write: the sum of their
-    ``disk_bytes(robots) -> (bytes, parameter)``, naming the public key of the parameter
-    of the largest (``log.positions_every`` when the robots' positions are most of the
-    log).
+def disk_need(exp: Experiment) -> DiskNeed:
+    """What the observers of ``exp`` that write files say they will write: the sum of
+    their ``disk_bytes(robots) -> (bytes, parameter)``, naming the public key of the
+    parameter of the largest (``log.positions_every`` when the robots' positions are
+    most of the log).
     """
+    robots = robot_count(exp.plant)
     parts = []
-    for name, observer in observers.items():
+    for name, observer in exp.observers.items():
         estimate = getattr(observer, "disk_bytes", None)
         if estimate is not None:
             nbytes, param = estimate(robots)
             parts.append((nbytes, name, param, getattr(observer, param, None)))
     if not parts:
-        return DiskNeed(0, "observers", None, steps)
+        return DiskNeed(0, "observers", None, exp.steps)
     _, name, param, value = max(parts)
-    key = keys.get(f"observers.{name}.{param}", f"observers.{name}.{param}")
-    return DiskNeed(sum(p[0] for p in parts), key, value, steps)
+    key = exp.keys.get(f"observers.{name}.{param}", f"observers.{name}.{param}")
+    return DiskNeed(sum(p[0] for p in parts), key, value, exp.steps)
 
 
 def check_disk(need: DiskNeed, out_dir: Path) -> int:

@@ -67,7 +67,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from harness.observers.log import LOG_FILE
 from harness.parameters import ParameterError
 from harness.runs.build import Experiment, build
-from harness.runs.checks import ConfigError, check_disk, config_line
+from harness.runs.checks import ConfigError, check_disk, config_line, disk_need
 from harness.runs.identity import code_change, code_identity, config_hash
 from harness.runs.run import RunResult, Terminated, run
 from harness.runs.sweep_progress import MODES, SweepMonitor, count_jobs, read_run
@@ -549,7 +549,7 @@ class CheckCallback(Callback):
                     str(out),
                     "a directory without a run.mcap (it holds one already: not overwritten)",
                 )
-            check_disk(parts.disk, out)
+            check_disk(disk_need(parts), out)
             probe_observers(parts)
             claim_run_dir(out)
         except ConfigError as err:

@@ -16,7 +16,8 @@ from __future__ import annotations
 import errno
 import signal
 import time
-import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,15 +25,14 @@ from typing import Any
 import numpy as np
 import scipy.sparse.linalg as spla
 from omegaconf import DictConfig
-from threadpoolctl import threadpool_limits
 
 from harness.fokker_planck import NumericalError
-from harness.loop import ClosedLoop
-from harness.observers.base import Observer, RunContext, Status
+from harness.loop import Experiment, computing, trajectory
+from harness.observers.base import Observer, RunContext, Status, seconds
 from harness.observers.log import LOG_FILE
 from harness.parameters import ParameterError
-from harness.runs.build import Experiment, build
-from harness.runs.checks import ConfigError, check_disk
+from harness.runs.build import build
+from harness.runs.checks import ConfigError, check_disk, disk_need
 
 
 class Terminated(Exception):
@@ -109,6 +109,20 @@ class StopRequest:
             self.interruptible = False
             raise KeyboardInterrupt(f"second signal {signal.Signals(signum).name}")
 
+    @contextmanager
+    def window(self) -> Iterator[None]:
+        """Around one step's computation (:func:`harness.loop.trajectory`): stop before
+        it when a signal came (:class:`Terminated`); while it computes, a second signal
+        stops at once.
+        """
+        if self.signals:
+            raise Terminated(self.reason)
+        self.interruptible = True
+        try:
+            yield
+        finally:
+            self.interruptible = False
+
     @property
     def reason(self) -> str:
         """``received SIGTERM`` (the first signal)."""
@@ -167,8 +181,7 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
             str(out_dir),
             "a directory without a run.mcap (it holds one already: not overwritten)",
         )
-    check_disk(exp.disk, out_dir)
-    exp.spent.append(True)
+    check_disk(disk_need(exp), out_dir)
     stop = StopRequest()
     stop.install()  # before the log exists: a signal from here on finalises it
     try:
@@ -233,15 +246,10 @@ def _finalize(observers: list[Observer], status: Status) -> None:
 
 
 def _run(exp: Experiment, out_dir: Path, stop: StopRequest, exclusive: bool) -> RunResult:
-    """The loop of :func:`run`: observers initialised, the loop stepped, the observers
-    finalised whatever happens (so the log always is); the log created exclusively when
-    ``exclusive``.
+    """The run of :func:`run`: observers initialised, the trajectory stepped
+    (:func:`harness.loop.trajectory`), the observers finalised whatever happens (so the
+    log always is); the log created exclusively when ``exclusive``.
     """
-    rng = np.random.default_rng(exp.seed)
-    steps = exp.steps
-    loop = ClosedLoop(
-        exp.plant, exp.estimator, exp.control, exp.model, exp.dt, rng, target=exp.target
-    )
     context = RunContext(out_dir, exclusive=exclusive)
     state, reason, done = "aborted", "", 0
     last: dict[str, float | None] = {}
@@ -250,26 +258,10 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest, exclusive: bool) -> 
     started: list[Observer] = []
     watching = list(exp.observers.values())
     try:
-        with threadpool_limits(1), warnings.catch_warnings():
-            warnings.simplefilter("error", spla.MatrixRankWarning)
-            warnings.filterwarnings("error", category=RuntimeWarning, module="harness")
+        with computing():
             started = _initialize(exp, context)
-            stop.interruptible = True
-            rec = loop.start()
-            stop.interruptible = False
-            last = {}
-            for observer in watching:
-                observer.handle(rec, last)
-            for _ in range(steps):
-                if stop.signals:
-                    raise Terminated(stop.reason)
-                stop.interruptible = True
-                rec = loop.step()
-                stop.interruptible = False
-                done = rec.step
-                last = {}
-                for observer in watching:
-                    observer.handle(rec, last)
+        for rec, values in trajectory(exp, watching, stop.window):
+            done, last = rec.step, values
         state = "completed"
     except ConfigError:
         raise  # an observer refused to start: nothing was logged
@@ -295,7 +287,7 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest, exclusive: bool) -> 
             if not _disk_full(err):
                 raise
             disk_error = disk_error or err
-    log_s = sum(float(getattr(o, "seconds", 0.0)) for o in watching)
+    log_s = sum(seconds(o) for o in watching)
     if disk_error is not None:
         raise DiskFull(
             f"disk full while writing {out_dir / 'run.mcap'} at step {done} "

@@ -29,7 +29,14 @@ from harness.estimators.filters.engines import LocalEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid, grid_gradient
 from harness.parameters import Incompatible, flag, integer, number, require
-from harness.protocols import Control, MemoryEstimate, Plant, default_memory, require_field
+from harness.protocols import (
+    Control,
+    MemoryEstimate,
+    Plant,
+    command_link,
+    default_memory,
+    require_field,
+)
 from harness.records import Estimate, RobotEstimates, StepInput
 
 
@@ -436,7 +443,7 @@ class DistributedEstimator:
                 "a law that moves each robot by the law of its own estimate (a FieldLaw "
                 "with its own at_cells, harness.control) for estimator=distributed",
             )  # fmt: skip
-        link = getattr(plant, "link", None)
+        link = command_link(plant)
         if link is not None and not link.ideal:
             key, value = (
                 ("link.loss", link.loss) if link.loss
