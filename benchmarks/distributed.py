@@ -147,7 +147,7 @@ def app_loop(n_robots: int, radius: float, steps: int, design: str = "grid") -> 
     per-robot law), median over ``steps`` steps after two untimed ones.
     """
     from harness.api import compose as compose_config
-    from harness.loop import ClosedLoop
+    from harness.loop import trajectory
     from harness.runs.build import build
 
     cfg = compose_config(
@@ -158,16 +158,13 @@ def app_loop(n_robots: int, radius: float, steps: int, design: str = "grid") -> 
             f"+design={design}",
         ]
     )
-    parts = build(cfg)
-    rng = np.random.default_rng(0)
-    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, DT, rng)
-    loop.start()
-    for _ in range(2):
-        loop.step()
+    loop = trajectory(build(cfg))
+    for _ in range(3):
+        next(loop)
     times = []
     for _ in range(steps):
         t0 = time.perf_counter()
-        loop.step()
+        next(loop)
         times.append(time.perf_counter() - t0)
     return 1e3 * float(np.median(times))
 
@@ -207,7 +204,7 @@ def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> No
 
     from harness.api import compose as compose_config
     from harness.grid import Grid as GridType
-    from harness.loop import ClosedLoop
+    from harness.loop import trajectory
     from harness.runs.build import build
     from harness.runs.checks import check_memory
 
@@ -217,13 +214,11 @@ def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> No
                  f"+design={design}"]  # fmt: skip
     cfg = compose_config(overrides)
     estimate = check_memory(cfg, GridType.square(int(cfg.grid.n), float(cfg.grid.length)))
-    parts = build(cfg)
-    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, DT,
-                      np.random.default_rng(0))  # fmt: skip
-    loop.start()
+    loop = trajectory(build(cfg))
+    next(loop)
     t0 = time.perf_counter()
     for _ in range(steps):
-        loop.step()
+        next(loop)
     ms = 1e3 * (time.perf_counter() - t0) / steps
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # kB on Linux
     name = f"N = {n_robots}, r = {radius}, {design}"

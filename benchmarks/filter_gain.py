@@ -22,26 +22,22 @@ from threadpoolctl import threadpool_limits
 
 from harness.api import compose as compose_config
 from harness.estimators.filters.engines import LocalEngine
-from harness.loop import ClosedLoop
+from harness.loop import trajectory
 from harness.runs.build import build
 
 
 def mean_gains(n: int, steps: int, seed: int, white: bool) -> tuple[float, float]:
     """``(mean d+ / r, mean d- / r)`` of the density filter after ``steps`` steps."""
-    parts = build(compose_config([f"grid.n={n}", "filter.engine=local"]))
+    parts = build(compose_config([f"grid.n={n}", "filter.engine=local", f"seed={seed}"]))
     engine = parts.estimator.engine  # type: ignore[attr-defined]
     assert isinstance(engine, LocalEngine)
     filters = engine.filters
     if white:
         filters.correlations = None
-    loop = ClosedLoop(
-        parts.plant, parts.estimator, parts.control, parts.model, 0.01,
-        np.random.default_rng(seed),
-    )  # fmt: skip
-    loop.start()
-    rec = loop.step()
-    for _ in range(steps - 1):
-        rec = loop.step()
+    loop = trajectory(parts)
+    next(loop)
+    for _ in range(steps):
+        rec, _ = next(loop)
     assert rec.measurement is not None and filters.d is not None and filters.d_prior is not None
     r = filters.measurement.density_variance(rec.measurement.p)
     return float(np.mean(filters.d / r)), float(np.mean(filters.d_prior / r))

@@ -44,7 +44,7 @@ from harness.control.assignment import (
 from harness.control.guidance import FeedbackGuidance, MetropolisGuidance, target_masses
 from harness.control.paper import PaperControl
 from harness.grid import Grid
-from harness.loop import ClosedLoop
+from harness.loop import trajectory
 from harness.records import ControlInput, Estimate
 from harness.runs.build import build
 from harness.targets.densities import DEFAULT_TARGET, Target
@@ -145,24 +145,16 @@ def loop(n: int, steps: int, laws: list[str], estimator: str, rounds: int) -> No
         cfg = compose(
             [f"control={law}", f"agents.n={n}", f"estimator={estimator}", "log.progress=off"]
         )
-        parts = build(cfg)
-        run = ClosedLoop(
-            parts.plant,
-            parts.estimator,
-            parts.control,
-            parts.model,
-            parts.dt,
-            np.random.default_rng(0),
-        )
-        run.start()
-        run.step()  # warm up (compilation)
+        run = trajectory(build(cfg))
+        next(run)
+        next(run)  # warm up (compilation)
         loops[law] = run
     spent: dict[str, list[float]] = {law: [] for law in laws}
     for _ in range(rounds):
         for law, run in loops.items():
             t0 = time.perf_counter()
             for _ in range(steps):
-                run.step()
+                next(run)
             spent[law].append((time.perf_counter() - t0) / steps)
     for law, times in spent.items():
         best, median = min(times), float(np.median(times))

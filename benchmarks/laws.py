@@ -12,9 +12,9 @@ thread as in a run; run with nothing else on the machine.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
-import numpy as np
 from threadpoolctl import threadpool_limits
 
 from benchmarks.report import record
@@ -36,7 +36,7 @@ def loop_rate(law: str, n_robots: int, seconds: float) -> tuple[float, float]:
     the same steps / mean step time).
     """
     from harness.api import compose
-    from harness.loop import ClosedLoop
+    from harness.loop import trajectory
     from harness.runs.build import build
 
     cfg = compose([f"control={law}", f"agents.n={n_robots}"])
@@ -50,17 +50,17 @@ def loop_rate(law: str, n_robots: int, seconds: float) -> tuple[float, float]:
         spent[0] += time.perf_counter() - t0
         return out
 
-    loop = ClosedLoop(
-        parts.plant, parts.estimator, timed, parts.model, parts.dt, np.random.default_rng(0)
-    )  # type: ignore[arg-type]
+    timed.gives_field = control.gives_field  # type: ignore[attr-defined]
+    timed.own_estimates = control.own_estimates  # type: ignore[attr-defined]
+    loop = trajectory(dataclasses.replace(parts, control=timed))  # type: ignore[arg-type]
     steps = max(1, round(seconds / parts.dt))
-    loop.start()
+    next(loop)
     for _ in range(steps):
-        loop.step()
+        next(loop)
     spent[0] = 0.0
     t0 = time.perf_counter()
     for _ in range(steps):
-        loop.step()
+        next(loop)
     wall = time.perf_counter() - t0
     return steps / wall, spent[0] / wall
 

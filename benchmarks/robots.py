@@ -40,22 +40,19 @@ LARGE_STEP_TARGET_MS = 30.0
 def loop_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     """Median over ``repeats`` blocks of the mean closed-loop step time (ms)."""
     from harness.api import compose
-    from harness.loop import ClosedLoop
+    from harness.loop import trajectory
     from harness.runs.build import build
 
     parts = build(compose([f"plant={plant}", f"agents.n={n_robots}"]))
-    loop = ClosedLoop(
-        parts.plant, parts.estimator, parts.control, parts.model, parts.dt,
-        np.random.default_rng(0),
-    )  # fmt: skip
-    loop.start()
+    loop = trajectory(parts)
+    next(loop)
     for _ in range(steps):  # warm-up: compile, fill caches
-        loop.step()
+        next(loop)
     blocks = []
     for _ in range(repeats):
         t0 = time.perf_counter()
         for _ in range(steps):
-            loop.step()
+            next(loop)
         blocks.append((time.perf_counter() - t0) / steps * 1e3)
     return float(np.median(blocks))
 
@@ -63,15 +60,13 @@ def loop_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
 def _started(plant: str, n_robots: int):
     """A built loop at its start (exact estimates) and the command it computed there."""
     from harness.api import compose
-    from harness.loop import ClosedLoop
+    from harness.loop import trajectory
     from harness.runs.build import build
 
     parts = build(compose([f"plant={plant}", f"agents.n={n_robots}", "estimator=exact"]))
-    rng = np.random.default_rng(0)
-    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, parts.dt, rng)
-    loop.start()
-    assert loop.command is not None and loop.command.field is not None
-    return parts, loop.command, rng
+    rec, _ = next(trajectory(parts))
+    assert rec.command.field is not None
+    return parts, rec.command, np.random.default_rng(0)
 
 
 WARM_UP = 150
@@ -94,27 +89,30 @@ def _median_ms(step, steps: int, repeats: int) -> float:
 
 def robot_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     """Median over ``repeats`` blocks of the mean robots' step (ms) under the start's
-    field (:meth:`harness.plants.agents.Agents.move_robots`: the command through the link and
+    field (:meth:`harness.plants.agents.Agents.advance`: the command through the link and
     the robots' move with the noise's draws; for the ideal integrators the compiled
     Euler-Maruyama step they take by default).
     """
     parts, command, rng = _started(plant, n_robots)
 
     def step() -> None:
-        parts.plant.move_robots(command, parts.dt, rng)
+        parts.plant.advance(command, None, parts.dt, rng)
 
     return _median_ms(step, steps, repeats)
 
 
 def plant_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
-    """Median over ``repeats`` blocks of the mean plant step (ms,
-    :meth:`harness.plants.agents.Agents.advance`: the link, the robots, the limit ``p_inf``) under
-    the start's command, held fixed."""
+    """Median over ``repeats`` blocks of the mean plant step (ms: the link and the robots,
+    :meth:`harness.plants.agents.Agents.advance`, and the loop's limit ``p_inf``,
+    :meth:`harness.plants.limit.Limit.advance`) under the start's command, held fixed."""
     parts, command, rng = _started(plant, n_robots)
     a = parts.model.matrix(command.field)
+    limit = parts.limit
+    assert limit is not None
 
     def step() -> None:
         parts.plant.advance(command, a, parts.dt, rng)
+        limit.advance(parts.dt)
 
     return _median_ms(step, steps, repeats)
 

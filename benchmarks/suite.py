@@ -103,20 +103,16 @@ def closed_loop_rate(n: int, engine: str, steps: int) -> float:
     the inverse of the median wall time of a step over ``steps`` steps after the first
     (the median: a step that the host delays does not move it)."""
     from harness.api import compose
-    from harness.loop import ClosedLoop
+    from harness.loop import trajectory
     from harness.runs.build import build
 
-    cfg = compose([f"grid.n={n}", f"filter.engine={engine}"])
-    parts = build(cfg)
-    loop = ClosedLoop(
-        parts.plant, parts.estimator, parts.control, parts.model, 0.01, np.random.default_rng(0)
-    )
-    loop.start()
-    loop.step()
+    loop = trajectory(build(compose([f"grid.n={n}", f"filter.engine={engine}"])))
+    next(loop)
+    next(loop)
     times = np.empty(steps)
     for i in range(steps):
         t0 = time.perf_counter()
-        loop.step()
+        next(loop)
         times[i] = time.perf_counter() - t0
     return 1.0 / float(np.median(times))
 

@@ -44,8 +44,13 @@ def test_compose_is_the_config_of_the_command_line(tmp_path):
     proc = cli("--cfg", "job", *overrides, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     cfg = api.compose(overrides)
-    assert "hydra" not in cfg
-    assert OmegaConf.to_container(cfg) == yaml.safe_load(proc.stdout)
+    composed = OmegaConf.to_container(cfg)
+    # of Hydra's node only the choices, which the command line's --cfg job leaves out
+    hydra = composed.pop("hydra")
+    assert hydra == {"runtime": {"choices": hydra["runtime"]["choices"]}}
+    assert hydra["runtime"]["choices"]["control"] == "heat"
+    assert hydra["runtime"]["choices"]["experiment"] == "smoke"
+    assert composed == yaml.safe_load(proc.stdout)
 
 
 def test_compose_repeatedly_from_any_directory_and_inside_hydra(tmp_path, monkeypatch):

@@ -97,7 +97,9 @@ def test_mcap_contract_agents_filters(tmp_path, compose, smoke):
     assert topics["/swarm/positions"] == ("foxglove.PointCloud", "protobuf", "protobuf", 4)
     assert topics["/metrics"] == ("densityloop.Metrics", "jsonschema", "json", 11)
     log = load_run(tmp_path)
-    assert set(log.metadata) == {"config", "provenance", "theory", "status"}
+    assert set(log.metadata) == {"config", "choices", "provenance", "theory", "status"}
+    assert log.metadata["choices"]["plant"] == "agents"
+    assert log.metadata["choices"]["control"] == "paper"
     assert 5 < float(log.metadata["theory"]["poincare_lambda"]) < 15
     assert "yaml" in log.metadata["config"] and "agents:" in log.metadata["config"]["yaml"]
     prov = log.metadata["provenance"]

@@ -16,7 +16,7 @@ from harness.estimators.distributed.graph import communication_graph
 from harness.estimators.distributed.robot_kde import kernel_factors, robot_kernels
 from harness.estimators.filters.common import FilterSettings
 from harness.grid import Grid
-from harness.loop import ClosedLoop
+from harness.loop import trajectory
 from harness.observers.motion import command_disagreement
 from harness.records import Command, Estimate, StepRecord
 from harness.runs.build import build
@@ -211,9 +211,8 @@ def test_every_design_equals_the_centralised_loop_on_a_complete_graph(compose, d
     enough PI rounds) every robot's estimate is the reference's, and its command is the
     law of the reference's estimate at its position, to 1e-10, along a closed-loop run."""
     parts = build(compose(["estimator=distributed", *SMALL, "estimator.radius=2.0", *design]))
-    loop = ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, 0.01,
-                      np.random.default_rng(4))  # fmt: skip
-    rec = loop.start()
+    steps = trajectory(parts)
+    rec, _ = next(steps)
     for step in range(25):
         robots = rec.estimate.robots
         assert robots is not None and robots.reference is not None
@@ -224,7 +223,7 @@ def test_every_design_equals_the_centralised_loop_on_a_complete_graph(compose, d
         assert command.robots is not None and command.reference is not None
         scale_v = np.abs(command.reference).max()
         np.testing.assert_allclose(command.robots, command.reference, atol=1e-10 * scale_v)
-        rec = loop.step()
+        rec, _ = next(steps)
 
 
 def test_messages_and_bytes_per_design():

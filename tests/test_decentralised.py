@@ -11,7 +11,7 @@ import pytest
 
 from analysis.load import load_run
 from harness.control.paper import PaperControl
-from harness.loop import ClosedLoop
+from harness.loop import trajectory
 from harness.observers.log import METRIC_KEYS
 from harness.records import Command, ControlInput
 from harness.runs.build import build
@@ -26,8 +26,7 @@ SMALL = ("grid.n=16", "agents.n=600", "sim.dt=0.01", "log.progress=off")  # binn
 
 def _loop(compose, overrides):
     parts = build(compose(["estimator=distributed", *SMALL, *overrides]))
-    rng = np.random.default_rng(3)
-    return ClosedLoop(parts.plant, parts.estimator, parts.control, parts.model, 0.01, rng), parts
+    return trajectory(parts), parts
 
 
 @pytest.mark.parametrize("gradient", ["grid", "fourth_order"])
@@ -38,8 +37,8 @@ def test_complete_graph_robots_equal_the_centralised_reference_in_the_loop(compo
     (the law of the robots' mean estimate and its central differences of the same
     order)."""
     overrides = ["estimator.radius=2.0", "estimator.initial_rounds=1"]
-    loop, parts = _loop(compose, [*overrides, f"estimator.gradient={gradient}"])
-    rec = loop.start()
+    steps, parts = _loop(compose, [*overrides, f"estimator.gradient={gradient}"])
+    rec, _ = next(steps)
     for step in range(40):
         robots = rec.estimate.robots
         assert robots is not None
@@ -50,21 +49,20 @@ def test_complete_graph_robots_equal_the_centralised_reference_in_the_loop(compo
         assert rec.estimate.metrics["central_gap_l2"] < 1e-10
         assert rec.estimate.metrics["components"] == 1.0
         np.testing.assert_allclose(rec.estimate.p_hat, p_central, atol=1e-10 * scale)
-        command = loop.command
-        assert command is not None and command.robots is not None and command.field is not None
-        broadcast = interpolate(parts.grid, command.field.centres, loop.plant.positions)
+        command = rec.command
+        assert command.robots is not None and command.field is not None
+        broadcast = interpolate(parts.grid, command.field.centres, rec.positions)
         scale_v = np.abs(broadcast).max()
         np.testing.assert_allclose(command.robots, broadcast, atol=1e-10 * scale_v)
-        rec = loop.step()
+        rec, _ = next(steps)
 
 
 def test_disconnected_robots_drift_apart_and_away_from_the_reference(compose):
     """Radius 0: no robot hears any other; each filters its own kernel, so the robots
     disagree by about a kernel's norm and the gap to the reference is of that size."""
-    loop, _ = _loop(compose, ["estimator.radius=0.0"])
-    rec = loop.start()
-    for _ in range(5):
-        rec = loop.step()
+    steps, _ = _loop(compose, ["estimator.radius=0.0"])
+    for _ in range(6):
+        rec, _ = next(steps)
     net = rec.estimate.metrics
     assert net["components"] == 600.0 and net["mean_degree"] == 0.0
     assert net["messages"] == 0.0 and net["algebraic_connectivity"] == 0.0
@@ -121,9 +119,9 @@ def test_bad_decentralised_configs_are_refused_naming_the_key(refusal, overrides
 
 
 def test_k_nearest_graph_runs(compose):
-    loop, _ = _loop(compose, ["estimator.radius=null", "estimator.k_nearest=6"])
-    loop.start()
-    rec = loop.step()
+    steps, _ = _loop(compose, ["estimator.radius=null", "estimator.k_nearest=6"])
+    next(steps)
+    rec, _ = next(steps)
     assert rec.estimate.metrics["mean_degree"] >= 6.0
 
 

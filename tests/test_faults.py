@@ -30,8 +30,8 @@ from analysis.load import LogWarning, load_run
 from harness.runs import checks
 from harness.runs.build import build
 from harness.runs.checks import ConfigError
-from harness.runs.jobs import MAX_NAME_BYTES, collect, job_dir_name, run_job, verify_log
 from harness.runs.identity import config_hash
+from harness.runs.jobs import MAX_NAME_BYTES, collect, job_dir_name, run_job, verify_log
 from harness.runs.run import DiskFull, run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -236,7 +236,7 @@ def test_extreme_finite_values_are_refused_or_end_cleanly(
 def test_memory_estimate_bounds_the_measured_peak(compose):
     """tracemalloc sees numpy's allocations: the estimate is an upper bound of the peak
     while building and stepping, for robots and for the dense reference filters."""
-    from harness.loop import ClosedLoop
+    from harness.loop import trajectory
 
     for overrides in (
         ["agents.n=200000", "grid.n=16", "log.progress=off"],
@@ -245,12 +245,9 @@ def test_memory_estimate_bounds_the_measured_peak(compose):
         cfg = compose(overrides)
         tracemalloc.start()
         parts = build(cfg)
-        loop = ClosedLoop(
-            parts.plant, parts.estimator, parts.control, parts.model, 0.01, np.random.default_rng(0)
-        )
-        loop.start()
-        for _ in range(3):
-            loop.step()
+        steps = trajectory(parts)
+        for _ in range(4):
+            next(steps)
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
         estimate = checks.check_memory(cfg, parts.grid, available=(10**15, "test"))

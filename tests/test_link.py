@@ -91,15 +91,8 @@ def _advance_without_link(self, command, a, dt, rng) -> None:
         self.swarm.step_robots(command.robots, dt, rng)
     else:
         self.swarm.step(command.field, dt, rng)
-    if self.has_limit:
-        from harness.records import ControlInput, Estimate
-
-        estimate = Estimate(*self.smoother(self.density))
-        limit = self.control(ControlInput(self.t, estimate, density=self.density))
-        self.density = self.model.step(self.density, limit.field, dt)
-    else:
-        self.density = self.swarm.histogram()
-    self.t += dt
+    self.tracking_error = 0.0
+    self.command_age = 0.0
     self._observe()
 
 
