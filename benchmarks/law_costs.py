@@ -14,8 +14,8 @@ with the swarm settled on its points and moved by 0.005 (the noise of a period).
 
 ``--solve`` times ot's assignment per size for two swarms, one crossing the domain
 (uniform on the paper's start box) and one settled (each robot within 0.005 of its
-point), and up to :data:`harness.control.assignment.EXACT_MAX` robots compares
-:func:`harness.control.assignment.large_assignment` with the exact assignment (cost ratio,
+point), and up to :data:`harness.control.matching.EXACT_MAX` robots compares
+:func:`harness.control.matching.large_assignment` with the exact assignment (cost ratio,
 certified or not, rounds).
 
 ``--loop`` steps the closed loop (the agents plant, the run's estimator, the law; no
@@ -33,15 +33,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from harness.api import compose
-from harness.control.assignment import (
-    EXACT_MAX,
-    AssignmentControl,
-    exact_assignment,
-    large_assignment,
-    quantise,
-    transport_cost,
-)
+from harness.control.assignment import AssignmentControl, quantise
 from harness.control.guidance import FeedbackGuidance, MetropolisGuidance, target_masses
+from harness.control.matching import EXACT_MAX, exact_assignment, large_assignment, transport_cost
 from harness.control.paper import PaperControl
 from harness.grid import Grid
 from harness.loop import trajectory

@@ -308,7 +308,7 @@ the grid's shape; above, the Jacobi-split series (chosen when the series was the
 grids' step: a sparse LU was cheaper above it, `make bench` at n = 30 to 128)."""
 
 
-def _series_terms(rho: float) -> int:
+def series_terms(rho: float) -> int:
     """Terms ``K`` with ``rho^(K+1) / (1 - rho) <= 1e-15`` (``K = 0`` when ``rho = 0``;
     a large number when ``rho >= 1``).
     """
@@ -467,7 +467,7 @@ def implicit_solve(
             return x
     else:
         rho = dt * 2.0 * float(np.max(np.abs(diag), initial=0.0))
-        terms = _series_terms(rho)
+        terms = series_terms(rho)
         if terms <= _MAX_SERIES_TERMS:
             block = np.ascontiguousarray(rhs, dtype=float).reshape(rhs.shape[0], -1)
             total = neumann_series(a.indptr, a.indices, a.data, float(dt), block, terms)

@@ -159,14 +159,14 @@ class Grid:
         """Sparse ``(2M, M)`` matrix ``G`` with ``G @ f.ravel() ==
         gradient(f).ravel()``.
         """
-        dx_1d = _gradient_1d(self.nx, self.dx)
-        dy_1d = _gradient_1d(self.ny, self.dy)
+        dx_1d = gradient_1d(self.nx, self.dx)
+        dy_1d = gradient_1d(self.ny, self.dy)
         gx = sp.kron(sp.identity(self.ny), dx_1d)
         gy = sp.kron(dy_1d, sp.identity(self.nx))
         return sp.vstack([gx, gy]).tocsr()
 
 
-def _gradient_1d(n: int, h: float) -> sp.csr_matrix:
+def gradient_1d(n: int, h: float) -> sp.csr_matrix:
     """1-D central-difference matrix with reflecting ghost cells at both ends."""
     d = sp.lil_matrix((n, n))
     for i in range(1, n - 1):

@@ -11,6 +11,7 @@ one-line config error naming the full key (following interpolations such as
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -78,3 +79,11 @@ def flag(name: str, value: Any) -> bool:
     """A boolean."""
     require(isinstance(value, bool), name, value, "true or false")
     return value
+
+
+def pair(name: str, value: object) -> tuple[object, object]:
+    """Two coordinates, or :class:`~harness.parameters.ParameterError` naming ``name``."""
+    ok = isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2
+    require(ok, name, value, "two coordinates [x, y]")
+    assert isinstance(value, Sequence)
+    return value[0], value[1]

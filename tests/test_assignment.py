@@ -10,16 +10,15 @@ import pytest
 
 from harness import api
 from harness.control import assignment
-from harness.control.assignment import (
-    AssignmentControl,
+from harness.control.assignment import AssignmentControl, quantise
+from harness.control.guidance import target_masses
+from harness.control.matching import (
     exact_assignment,
     large_assignment,
-    quantise,
     transport_cost,
     violations,
     violations_reference,
 )
-from harness.control.guidance import target_masses
 from harness.control.waypoints import cell_of
 from harness.grid import Grid
 from harness.loop import trajectory

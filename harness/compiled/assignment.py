@@ -1,6 +1,6 @@
 """Compiled optimality check of an assignment's dual potentials (ot's large-N assignment,
-:func:`harness.control.assignment.large_assignment`), O(n^2) in one pass without temporaries;
-:func:`harness.control.assignment.violations_reference` is the numpy statement that tests compare
+:func:`harness.control.matching.large_assignment`), O(n^2) in one pass without temporaries;
+:func:`harness.control.matching.violations_reference` is the numpy statement that tests compare
 against.
 """
 

@@ -42,7 +42,10 @@ from harness.targets.moving import TargetPath
 from harness.velocity import VelocityField, interpolate
 
 
-def _check_gains(alpha: float, sigma: float) -> None:
+def check_gains(alpha: float, sigma: float) -> None:
+    """Refuse a gain ``alpha`` or noise intensity ``sigma`` that is negative or not
+    finite (a ``ValueError`` naming the key), for the field laws' equations.
+    """
     if not (np.isfinite(alpha) and alpha >= 0):
         raise ValueError(f"control.alpha must be finite and >= 0, got {alpha}")
     if not (np.isfinite(sigma) and sigma >= 0):

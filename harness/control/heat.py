@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.control.field import FieldLaw, _check_gains
-from harness.control.paper import _feedback_target, paper_law
+from harness.control.field import FieldLaw, check_gains
+from harness.control.paper import feedback_target, paper_law
 from harness.parameters import flag, number, speed_cap
 from harness.targets.densities import Target
 from harness.velocity import VelocityField
@@ -43,7 +43,7 @@ def heat_law(
         noise_compensation: Include the ``+sigma q_hat / p_hat`` term.
         feedback_target: Replaces ``p_*`` in the feedback term (the debiased law).
     """
-    _check_gains(alpha, sigma)
+    check_gains(alpha, sigma)
     if not density_floor > 0:
         raise ValueError(f"heat law density_floor must be > 0, got {density_floor}")
     denom = np.maximum(p_hat, density_floor)
@@ -100,12 +100,12 @@ class HeatControl(FieldLaw):
         self.density_floor = number("density_floor", density_floor, 0.0, strict=True)
         self.noise_compensation = flag("noise_compensation", noise_compensation)
         self._debias = (debias, bandwidth, mirror)
-        self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
+        self.feedback_target = feedback_target(target, debias, bandwidth, mirror)
 
     def retarget(self, target: Target) -> None:
         """``target`` and its feedback target (smoothed again when debiased)."""
         self.target = target
-        self.feedback_target = _feedback_target(target, *self._debias)
+        self.feedback_target = feedback_target(target, *self._debias)
 
     def field(self, p_hat: np.ndarray, q_hat: np.ndarray) -> VelocityField:
         """The heat-equation law of :func:`heat_law`."""

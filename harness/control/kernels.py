@@ -35,8 +35,8 @@ parallel one), against 0.04 to 0.05 ms for the mean-field form. From the robots'
 weights ``w`` the laws subtract ``W*_n = int hat_n p_*``, the weights' expectation for
 robots drawn from ``p_*`` (``hat_n`` the bilinear hat of node ``n``), computed once by the
 midpoint rule of the target's continuous density on :data:`TARGET_REFINEMENT` sub-cells
-per node interval, where the hats are linear (:func:`_fine_target`,
-:func:`_expected_weights`; 1.6e-4 relative against a finer rule): the binning's own bias
+per node interval, where the hats are linear (:func:`fine_target`,
+:func:`expected_weights`; 1.6e-4 relative against a finer rule): the binning's own bias
 (the KDE's, ``O((s / l)^2)`` for node spacing ``s``) then cancels at ``p = p_*``. Without
 robots the sources are the cell centres (or faces) and the weights the cell masses ``p
 dx dy``. The plain sums over robots (``O(N)`` per point, ``O(N^2)`` at the robots) are
@@ -129,7 +129,10 @@ def image_kernel(
     return g, d_source, d_point
 
 
-def _check_length(grid: Grid, length: float) -> float:
+def check_length(grid: Grid, length: float) -> float:
+    """The kernel length ``l`` (length), refused unless ``0 < l <=`` the domain side over
+    :data:`LENGTH_PER_SIDE` (:class:`~harness.parameters.ParameterError` naming ``length``).
+    """
     side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
     value = number("length", length, 0.0, strict=True)
     require(
@@ -141,7 +144,7 @@ def _check_length(grid: Grid, length: float) -> float:
     return value
 
 
-class _Nodes:
+class Nodes:
     """The fine binning nodes of kernel length ``l`` on a grid (those of
     :class:`harness.estimators.kde.KDE` of bandwidth ``l``) and the robots' linear binning on them.
     """
@@ -168,10 +171,10 @@ class _Nodes:
 
 TARGET_REFINEMENT = 4
 """Sub-cells per binning interval and axis of the grid the target's continuous density
-is put on for the robot form (:func:`_fine_target`)."""
+is put on for the robot form (:func:`fine_target`)."""
 
 
-def _fine_target(target: Target, nodes: _Nodes) -> tuple[Grid, np.ndarray]:
+def fine_target(target: Target, nodes: Nodes) -> tuple[Grid, np.ndarray]:
     """The target's continuous density on the grid of :data:`TARGET_REFINEMENT` cells
     per binning interval (the nodes lie on its cell edges), normalised on it: the
     density's own cell values, or without a density (or where it is not positive there)
@@ -188,9 +191,9 @@ def _fine_target(target: Target, nodes: _Nodes) -> tuple[Grid, np.ndarray]:
     return fine, values / fine.integrate(values)
 
 
-def _expected_weights(fine: Grid, values: np.ndarray, nodes: _Nodes) -> np.ndarray:
+def expected_weights(fine: Grid, values: np.ndarray, nodes: Nodes) -> np.ndarray:
     """``W*_n = int hat_n p_*``, the expectation of the robots' binned weights for robots
-    drawn from the density ``values`` on ``fine`` (:func:`_fine_target`): the midpoint
+    drawn from the density ``values`` on ``fine`` (:func:`fine_target`): the midpoint
     rule on ``fine``, whose cells lie between nodes, where the hat functions are linear
     (error ``O((s / r)^2)`` relative, smooth: no kink of a hat inside a cell).
     """
@@ -208,7 +211,7 @@ def _expected_weights(fine: Grid, values: np.ndarray, nodes: _Nodes) -> np.ndarr
     return out
 
 
-def _field(feedback: np.ndarray, drift: VelocityField) -> VelocityField:
+def kernel_field(feedback: np.ndarray, drift: VelocityField) -> VelocityField:
     """Feedback centres averaged onto the faces, plus the drift's own centres and faces."""
     return VelocityField(
         feedback + drift.centres,
@@ -217,7 +220,7 @@ def _field(feedback: np.ndarray, drift: VelocityField) -> VelocityField:
     )
 
 
-def _drift(target: Target, sigma: float, on: bool) -> VelocityField:
+def noise_drift(target: Target, sigma: float, on: bool) -> VelocityField:
     """``sigma grad log p_*`` as :func:`harness.control.paper.paper_law` puts it on the grid
     (centres and face differences of ``log p_*``), or zero.
     """
@@ -225,7 +228,10 @@ def _drift(target: Target, sigma: float, on: bool) -> VelocityField:
     return paper_law(zero, np.zeros((2, *zero.shape)), target, 0.0, sigma if on else 0.0)
 
 
-def _density(inp: ControlInput, grid: Grid) -> np.ndarray:
+def input_density(inp: ControlInput, grid: Grid) -> np.ndarray:
+    """The density that stands for the robots in a law's input without robots
+    (:attr:`harness.records.ControlInput.density`), checked to lie on ``grid``.
+    """
     if inp.density is None:
         raise ValueError("a kernel law needs the robots' positions or, without robots, a density")
     p = np.asarray(inp.density, dtype=float)
@@ -234,7 +240,7 @@ def _density(inp: ControlInput, grid: Grid) -> np.ndarray:
     return p
 
 
-def _log_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def log_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The logarithmic mean ``(a - b) / (log a - log b)`` (``a`` where ``a = b``), for
     positive ``a``, ``b``.
     """
@@ -250,7 +256,7 @@ _CHUNK = 1 << 20
 """Point-source pairs per block of the plain sums (8 MB per array)."""
 
 
-def _blocks(points: np.ndarray, sources: int) -> list[slice]:
+def point_blocks(points: np.ndarray, sources: int) -> list[slice]:
     """Slices of the points such that each block pairs at most ``_CHUNK`` of them with
     the sources.
     """
@@ -258,7 +264,7 @@ def _blocks(points: np.ndarray, sources: int) -> list[slice]:
     return [slice(i, i + step) for i in range(0, points.shape[1], step)]
 
 
-def _images(
+def wall_images(
     u: np.ndarray, lo: float, hi: float, parity: int
 ) -> list[tuple[float, float, np.ndarray]]:
     """The source coordinate and its two wall images: ``(sign, d image / d u, image)``."""

@@ -11,16 +11,16 @@ from typing import ClassVar
 import numpy as np
 
 from harness.control.kernels import (
-    _blocks,
-    _check_length,
-    _density,
-    _drift,
-    _expected_weights,
-    _field,
-    _fine_target,
-    _images,
-    _Nodes,
+    Nodes,
+    check_length,
+    expected_weights,
+    fine_target,
     image_kernel,
+    input_density,
+    kernel_field,
+    noise_drift,
+    point_blocks,
+    wall_images,
 )
 from harness.grid import Grid
 from harness.parameters import flag, integer, number, speed_cap
@@ -150,18 +150,18 @@ class MMDControl:
         g = target.grid
         self.beta = number("beta", beta, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
-        self.length = _check_length(g, length)
+        self.length = check_length(g, length)
         self.resolution = self.length  # the smallest scale the law's feedback resolves
         self.noise_compensation = flag("noise_compensation", noise_compensation)
         self.v_max = speed_cap(v_max)
-        self.nodes = _Nodes(g, self.length, integer("bin_factor", bin_factor, 1))
-        self.drift = _drift(target, self.sigma, self.noise_compensation)
+        self.nodes = Nodes(g, self.length, integer("bin_factor", bin_factor, 1))
+        self.drift = noise_drift(target, self.sigma, self.noise_compensation)
         n = self.nodes
         self._from_nodes = self._kernels(n.x, n.y, g.x, g.y)
         self._from_cells = self._kernels(g.x, g.y, g.x, g.y)
         # k_l * p_* as the binned KDE of robots drawn from p_* gives it in expectation,
         # and for the mean-field form the quadrature of p_*'s cell values
-        self.target_weights = _expected_weights(*_fine_target(target, n), n)
+        self.target_weights = expected_weights(*fine_target(target, n), n)
         self._target_cells = self._sums(target.p * g.cell_area, self._from_cells)
 
     def _kernels(
@@ -186,7 +186,7 @@ class MMDControl:
         """
         if inp.positions is not None:
             return self.binned(self.nodes.weights(inp.positions))
-        p = _density(inp, self.target.grid)
+        p = input_density(inp, self.target.grid)
         grad = self._sums(p * self.target.grid.cell_area, self._from_cells)
         return -self.beta * (grad - self._target_cells)
 
@@ -222,7 +222,7 @@ class MMDControl:
 
     def __call__(self, inp: ControlInput) -> Command:
         """The field: the feedback at the centres (faces: their means) plus the drift."""
-        return Command(_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``beta max(p0)``: linearised about ``p0``, the feedback's flux is ``beta p0
@@ -250,10 +250,10 @@ def mmd_feedback_reference(
 
     def grad(sources: np.ndarray, weights: np.ndarray) -> np.ndarray:
         out = np.zeros((2, points.shape[1]))
-        for block in _blocks(points, sources.shape[1]):
+        for block in point_blocks(points, sources.shape[1]):
             px, py = points[0, block, None], points[1, block, None]
-            for sx, _, ix in _images(sources[0], grid.x0, grid.x1, 1):
-                for sy, _, iy in _images(sources[1], grid.y0, grid.y1, 1):
+            for sx, _, ix in wall_images(sources[0], grid.x0, grid.x1, 1):
+                for sy, _, iy in wall_images(sources[1], grid.y0, grid.y1, 1):
                     zx, zy = px - ix, py - iy
                     k = sx * sy * norm * np.exp(-(zx**2 + zy**2) / (2 * length**2))
                     out[0, block] += (-zx / length**2 * k) @ weights

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from harness.compiled.control import paper_velocity
-from harness.control.field import FieldLaw, _check_gains
+from harness.control.field import FieldLaw, check_gains
 from harness.estimators.smoothing import smoothed_target
 from harness.parameters import flag, number, speed_cap
 from harness.targets.densities import Target
@@ -53,7 +53,7 @@ def paper_law(
     the debiased law passes the smoothed target ``K_h * p_*`` there (see
     :class:`PaperControl`).
     """
-    _check_gains(alpha, sigma)
+    check_gains(alpha, sigma)
     g = target.grid
     f = target if feedback_target is None else feedback_target
     p_hat, q_hat = np.asarray(p_hat), np.asarray(q_hat)
@@ -81,7 +81,7 @@ def paper_law_reference(
     """Numpy statement of :func:`paper_law` (which is compiled,
     :func:`harness.compiled.control.paper_velocity`; the same bits).
     """
-    _check_gains(alpha, sigma)
+    check_gains(alpha, sigma)
     g = target.grid
     f = target if feedback_target is None else feedback_target
     feedback = -alpha * (f.p * q_hat - p_hat * f.grad) / f.p**2
@@ -164,7 +164,7 @@ class PaperControl(FieldLaw):
         self.alpha = number("alpha", alpha, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
         self._debias = (debias, bandwidth, mirror)
-        self.feedback_target = _feedback_target(target, debias, bandwidth, mirror)
+        self.feedback_target = feedback_target(target, debias, bandwidth, mirror)
         self.v_max = speed_cap(v_max)
         self.feedforward = flag("feedforward", feedforward)
         self._poisson: NeumannPoisson | None = None
@@ -172,7 +172,7 @@ class PaperControl(FieldLaw):
     def retarget(self, target: Target) -> None:
         """``target`` and its feedback target (smoothed again when debiased)."""
         self.target = target
-        self.feedback_target = _feedback_target(target, *self._debias)
+        self.feedback_target = feedback_target(target, *self._debias)
 
     def feedforward_field(self, target: Target, rate: np.ndarray) -> VelocityField | None:
         """The feedforward ``w`` for ``p_*(t) = target`` moving at ``d_t p_* = rate``
@@ -287,7 +287,7 @@ class PaperControl(FieldLaw):
         return self.alpha * float(np.max(p0 / self.feedback_target.p))
 
 
-def _feedback_target(target: Target, debias: bool, bandwidth: float | None, mirror: bool) -> Target:
+def feedback_target(target: Target, debias: bool, bandwidth: float | None, mirror: bool) -> Target:
     """``target``, or with ``debias`` the smoothed target ``K_h * p_*``."""
     if not flag("debias", debias):
         return target

@@ -12,17 +12,17 @@ import numpy as np
 from scipy.interpolate import RectBivariateSpline
 
 from harness.control.kernels import (
-    _blocks,
-    _check_length,
-    _density,
-    _drift,
-    _expected_weights,
-    _field,
-    _fine_target,
-    _images,
-    _log_mean,
-    _Nodes,
+    Nodes,
+    check_length,
+    expected_weights,
+    fine_target,
     image_kernel,
+    input_density,
+    kernel_field,
+    log_mean,
+    noise_drift,
+    point_blocks,
+    wall_images,
 )
 from harness.grid import Grid
 from harness.parameters import flag, integer, number, speed_cap
@@ -155,14 +155,14 @@ class SVGDControl:
         g = target.grid
         self.eps = number("eps", eps, 0.0)
         self.sigma = number("sigma", sigma, 0.0)
-        self.length = _check_length(g, length)
+        self.length = check_length(g, length)
         self.resolution = self.length
         self.noise_compensation = flag("noise_compensation", noise_compensation)
         self.v_max = speed_cap(v_max)
-        self.nodes = n = _Nodes(g, self.length, integer("bin_factor", bin_factor, 1))
-        self.drift = _drift(target, self.sigma, self.noise_compensation)
-        fine, values = _fine_target(target, n)
-        self.target_weights = _expected_weights(fine, values, n)
+        self.nodes = n = Nodes(g, self.length, integer("bin_factor", bin_factor, 1))
+        self.drift = noise_drift(target, self.sigma, self.noise_compensation)
+        fine, values = fine_target(target, n)
+        self.target_weights = expected_weights(fine, values, n)
         self.log_target = RectBivariateSpline(
             fine.y, fine.x, np.log(values), bbox=[g.y0, g.y1, g.x0, g.x1], kx=3, ky=3
         )
@@ -171,8 +171,8 @@ class SVGDControl:
         self._from_nodes = self._robot_kernels(g.x, g.y)
         self._from_faces = self._face_kernels(g.x, g.y)
         # the face values p*_f of the discrete Stein identity: logarithmic means
-        self._face_x = _log_mean(target.p[:, :-1], target.p[:, 1:])
-        self._face_y = _log_mean(target.p[:-1, :], target.p[1:, :])
+        self._face_x = log_mean(target.p[:, :-1], target.p[:, 1:])
+        self._face_y = log_mean(target.p[:-1, :], target.p[1:, :])
 
     def score(self, points: np.ndarray) -> np.ndarray:
         """The score ``grad log p_*`` the robot form uses, at points ``(2, P)``: the
@@ -230,7 +230,7 @@ class SVGDControl:
         """
         if inp.positions is not None:
             return self.binned(self.nodes.weights(inp.positions))
-        return self._stein_sums(_density(inp, self.target.grid), self._from_faces)
+        return self._stein_sums(input_density(inp, self.target.grid), self._from_faces)
 
     def binned(self, weights: np.ndarray) -> np.ndarray:
         """The SVGD velocity at the cell centres, ``(2, ny, nx)`` (length / s), of robots
@@ -260,7 +260,7 @@ class SVGDControl:
 
     def __call__(self, inp: ControlInput) -> Command:
         """The field: the SVGD velocity at the centres (faces: their means) plus the drift."""
-        return Command(_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``eps max(p0)``: linearised about ``p0`` the flux ``p v`` is ``-eps p0 k_a *
@@ -288,11 +288,11 @@ def svgd_feedback_reference(
     """
     norm = 1.0 / (2.0 * np.pi * length**2)
     out = np.zeros((2, points.shape[1]))
-    for block in _blocks(points, sources.shape[1]):
+    for block in point_blocks(points, sources.shape[1]):
         px, py = points[0, block, None], points[1, block, None]
         for a, (parity_x, parity_y) in ((0, (-1, 1)), (1, (1, -1))):
-            for sx, jx, ix in _images(sources[0], grid.x0, grid.x1, parity_x):
-                for sy, jy, iy in _images(sources[1], grid.y0, grid.y1, parity_y):
+            for sx, jx, ix in wall_images(sources[0], grid.x0, grid.x1, parity_x):
+                for sy, jy, iy in wall_images(sources[1], grid.y0, grid.y1, parity_y):
                     zx, zy = px - ix, py - iy
                     k = sx * sy * norm * np.exp(-(zx**2 + zy**2) / (2 * length**2))
                     # d/du_a k(x - u') = (x - u')_a / l^2 k (d u'_a / d u_a), u' the image

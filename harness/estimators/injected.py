@@ -8,10 +8,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from harness.estimators.filters.estimator import _pair
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.parameters import integer, number, require
+from harness.parameters import integer, number, pair, require
 from harness.records import Estimate, StepInput
 
 
@@ -79,7 +78,7 @@ class InjectedEstimator:
         omega = number("omega", omega)
         modes = integer("modes", modes, 1)
         require(shape in self.SHAPES, "shape", shape, f"one of {', '.join(self.SHAPES)}")
-        centre = [number("hole_centre", c) for c in _pair("hole_centre", hole_centre)]
+        centre = [number("hole_centre", c) for c in pair("hole_centre", hole_centre)]
         require(
             bool(grid.contains(np.array([centre[0]]), np.array([centre[1]])).all()),
             "hole_centre", list(hole_centre), "a point inside the domain",

@@ -70,7 +70,7 @@ def noise_constants(n_robots: int, bandwidth: float) -> tuple[float, float]:
     return k, k_g
 
 
-_IMAGE_CUTOFF = 9.0
+IMAGE_CUTOFF = 9.0
 """Images of robots farther than this many bandwidths from a wall contribute less
 than ``exp(-81/2) ~ 3e-18`` of a kernel peak and are skipped."""
 
@@ -98,7 +98,7 @@ def kernel_1d(
 
     ``g_h(z) = exp(-z^2 / 2h^2) / (sqrt(2 pi) h)`` and ``d/dc g_h(c - X) = -(c - X) /
     h^2 g_h(c - X)``. With ``mirror`` the images ``2 lo - X`` and ``2 hi - X`` of
-    the robots within ``_IMAGE_CUTOFF h`` of a wall are added. Rows are robots, so
+    the robots within ``IMAGE_CUTOFF h`` of a wall are added. Rows are robots, so
     adding images to a subset of robots touches whole rows. ``out`` is an optional
     pair of ``(N, n)`` buffers reused between calls.
     """
@@ -113,7 +113,7 @@ def kernel_1d(
     dg *= g
     if mirror:
         for wall in (lo, hi):
-            near = np.flatnonzero(np.abs(points - wall) < _IMAGE_CUTOFF * h)
+            near = np.flatnonzero(np.abs(points - wall) < IMAGE_CUTOFF * h)
             if near.size:
                 zi = np.subtract.outer((2.0 * wall - points[near]) * -inv_h, -centres * inv_h)
                 gi = _gauss_inplace(zi.copy())

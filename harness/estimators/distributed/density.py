@@ -31,7 +31,7 @@ import scipy.sparse as sp
 from harness.estimators.distributed.row_solver import RowSolver
 from harness.estimators.filters.common import MeasurementModel
 from harness.estimators.filters.local import squared_transition
-from harness.fokker_planck import _series_terms, implicit_solve
+from harness.fokker_planck import implicit_solve, series_terms
 from harness.grid import Grid
 
 ROBOT_MAX_SWEEPS = 60
@@ -151,14 +151,14 @@ def jacobi_sweeps(coef: np.ndarray) -> int:
     to zero), ``y = D x`` solves ``y = b + O D^{-1} y``, whose iteration matrix has
     1-norm ``q = max_r dt |a_rr| / (1 + dt |a_rr|) < 1``. ``K`` sweeps from ``y_0 = b``
     sum the series to ``k = K``; the remainder is at most ``q^{K+1} / (1 - q) ||b||_1``
-    (``_series_terms(q)``), and ``|x - x_K| <= |y - y_K|`` as ``D >= 1``. About half the
+    (``series_terms(q)``), and ``|x - x_K| <= |y - y_K|`` as ``D >= 1``. About half the
     Neumann terms of ``sum (dt A)^k`` (whose ratio is ``rho = 2 max dt |a_rr|``).
 
     A posteriori: the ``k``-th term ``T^k b`` bounds the rest by ``q / (1 - q)
     ||T^k b||_1`` (each further term shrinks by ``q`` at least), so the filter stops
     as soon as that is below ``1e-15 ||b||_1``, never later than ``K``.
     """
-    return _series_terms(jacobi_ratio(coef))
+    return series_terms(jacobi_ratio(coef))
 
 
 def stencil_coefficients(grid: Grid, a: sp.csr_matrix, dt: float) -> tuple[np.ndarray, np.ndarray]:

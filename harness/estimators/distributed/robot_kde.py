@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from harness.estimators.kde import _IMAGE_CUTOFF
+from harness.estimators.kde import IMAGE_CUTOFF
 from harness.grid import Grid
 
 
@@ -90,7 +90,7 @@ def kernel_factors(
                                (pts[1], g.ny, g.dy, g.y, g.y0, g.y1)):  # fmt: skip
         out.append(
             _kernel_factors_1d(
-                np.ascontiguousarray(p), float(c[0]), d, n, bandwidth, lo, hi, _IMAGE_CUTOFF
+                np.ascontiguousarray(p), float(c[0]), d, n, bandwidth, lo, hi, IMAGE_CUTOFF
             )
         )
     (kx, dkx), (ky, dky) = out

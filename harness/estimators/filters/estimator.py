@@ -5,25 +5,15 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
 
 from harness.estimators.filters.common import FilterSettings, MeasurementModel
 from harness.estimators.filters.engines import FilterEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.parameters import ParameterError, integer, number, require
+from harness.parameters import ParameterError, integer, number
 from harness.protocols import Control, MemoryEstimate, default_memory, require_field
 from harness.records import Estimate, StepInput
-
-
-def _pair(name: str, value: object) -> tuple[object, object]:
-    """Two coordinates, or :class:`~harness.parameters.ParameterError` naming ``name``."""
-    ok = isinstance(value, Sequence) and not isinstance(value, str) and len(value) == 2
-    require(ok, name, value, "two coordinates [x, y]")
-    assert isinstance(value, Sequence)
-    return value[0], value[1]
 
 
 class FilterEstimator:

@@ -547,10 +547,10 @@ def _gradient_eigenvalues(n: int, h: float) -> np.ndarray:
     """Eigenvalues ``|D phi_a|^2`` of ``D^T D`` for the 1-D grid gradient ``D`` (central
     differences, reflecting ghosts) on the orthonormal DCT-II vectors ``phi_a``.
     """
-    from harness.grid import _gradient_1d
+    from harness.grid import gradient_1d
 
     basis = sfft.idct(np.eye(n), type=2, norm="ortho", axis=0)
-    return np.sum((_gradient_1d(n, h) @ basis) ** 2, axis=0)
+    return np.sum((gradient_1d(n, h) @ basis) ** 2, axis=0)
 
 
 def laplacian_pinv_spectrum(grid: Grid) -> np.ndarray:
