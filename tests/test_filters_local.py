@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+from benchmarks.filter_accuracy import compare_filters
 from harness.estimators.filters.common import FilterSettings, Integrator, MeasurementModel
-from harness.estimators.filters.compare import compare_filters
 from harness.estimators.filters.local import (
     LocalFilters,
     WeightedPoisson,
