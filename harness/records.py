@@ -129,9 +129,9 @@ class ControlInput:
             robot's own, ``estimate.robots``).
         positions: Robot positions ``(2, N)`` (length) as the law sees them (with the
             plant's localisation noise), None without robots (the mean-field plant, and
-            the agents plant's ``N -> infinity`` limit).
+            the loop's ``N -> infinity`` limit).
         density: Without robots, the mean-field density ``(ny, nx)`` (1 / length^2) that
-            stands for them (the mean-field plant's state; the agents plant's limit
+            stands for them (the mean-field plant's state; the loop's limit
             ``p_inf``): a law of the positions evaluates its mean-field form on it.
             None with robots.
         target: The target at ``t``, ``p_*(t)`` (a :class:`harness.targets.densities.Target`),
@@ -157,7 +157,7 @@ class Command:
 
     Attributes:
         field: The velocity field (length / s), or None for a law that only moves
-            robots. The mean-field plant, the agents plant's ``N -> infinity`` limit and
+            robots. The mean-field plant, the loop's ``N -> infinity`` limit and
             the filters' transport model ``A(v)`` use it.
         robots: Velocities ``(2, N)`` (length / s) the robots move with, or None: the
             robots then move by the field's bilinear interpolant at their positions.

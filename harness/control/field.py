@@ -220,7 +220,7 @@ class FieldLaw:
     def moving_target(self, inp: ControlInput) -> tuple[Target | None, np.ndarray | None]:
         """``(p_*(t), d_t p_*)`` at ``inp.t``: the input's when it carries them, else
         the law's own target's path when that moves (a caller that does not fill them,
-        such as the agents plant's ``N -> infinity`` limit); ``(None, None)`` for a
+        such as the loop's ``N -> infinity`` limit); ``(None, None)`` for a
         static target.
         """
         if inp.target is not None:

@@ -1,4 +1,5 @@
-"""Robots: Euler-Maruyama for the Langevin equation with reflecting walls.
+"""``plant=agents``: ``N`` ideal integrators, Euler-Maruyama for the Langevin equation
+with reflecting walls, measured by their KDE; and what every robot plant shares.
 
 Each robot follows (eq. ``Langevin equation``)
 
@@ -32,27 +33,14 @@ one of numpy's own generators, with the same statistical standing (it passes the
 usual test batteries). Swarms below ``PARALLEL_DRAW_MIN / 2`` robots, every study
 preset among them, draw from ``rng`` itself, as before.
 
-
-Plants (config group ``plant``): what moves under the held velocity and what it
-lets the estimator measure.
-
-* :class:`Agents` (``plant=agents``): ``N`` robots by eq. ``Langevin equation``
-  (:class:`harness.plants.agents.Swarm`), measured by their KDE (:class:`harness.estimators.kde.KDE`);
-  alongside, the loop's deterministic ``N -> infinity`` limit ``p_inf``: the
-  Fokker-Planck density (eq. ``FP equation``) started from ``p_0`` and moved by the
-  same control law fed the estimates a noise-free KDE of ``p_inf`` would give,
-  ``K_h * p_inf`` and its gradient (:class:`harness.estimators.smoothing.Smoother`).
-* :class:`MeanField` (``plant=meanfield``): no robots; the state is the Fokker-Planck
-  density ``p`` and the measurement is ``p`` plus seeded Gaussian noise with the KDE's
-  own variances ``k p`` and ``k_g p`` per cell (notes section 3), for the swarm size and
-  bandwidth configured.
-
-Both implement :class:`harness.protocols.Plant` and share the run's
-:class:`~harness.fokker_planck.FokkerPlanck` model. Both need a law with a velocity
-field: the mean-field plant moves by it, and the agents plant's limit ``p_inf`` is the
-law's field of ``p_inf``'s own noise-free KDE (the Fokker-Planck density under the
-*applied* velocity would be no reference: that velocity is computed from the swarm's own
-fluctuations, so such a density drifts away from the swarm).
+The plant (:class:`Agents`). The robots move under the command as it reaches them
+through the command link (:mod:`harness.plants.link`), are seen with an optional
+localisation error, and are measured by their KDE (:class:`harness.estimators.kde.KDE`).
+Its constructor is the one every robot plant shares: unicycles
+(:mod:`harness.plants.unicycles`) and double integrators
+(:mod:`harness.plants.double_integrators`) add their own parameters and robots
+(:meth:`Agents._robots`, a subclass of :class:`Swarm` with its own ``move``). The loop's
+``N -> infinity`` limit beside the robots is :mod:`harness.plants.limit`.
 """
 
 from __future__ import annotations
