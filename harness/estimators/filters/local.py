@@ -89,7 +89,7 @@ filters carry the same projected model (``F' = Pi F``, ``Q' = q Pi``, ``R' = Pi 
 
 Process noise ``Q = q dt k I`` (density) and ``q dt k_g I`` (gradient), as in the
 reference. The approximation error is measured, not assumed:
-:func:`benchmarks.filter_accuracy.compare_filters` runs both forms in one closed loop.
+``benchmarks.filter_accuracy.compare_filters`` runs both forms in one closed loop.
 """
 
 from __future__ import annotations
