@@ -28,7 +28,7 @@ from harness.loop import Experiment
 from harness.observers.base import Observer
 from harness.parameters import Incompatible, ParameterError
 from harness.plants.limit import Limit
-from harness.protocols import Control, Estimator, Plant, check_parts
+from harness.protocols import Control, Estimator, Plant, check_parts, follows_moving_target
 from harness.runs.checks import (
     SHARED_BLOCKS,
     ConfigError,
@@ -42,7 +42,7 @@ from harness.runs.checks import (
 )
 from harness.runs.identity import RunIdentity, choices, resolved
 from harness.targets.densities import Density, Target
-from harness.targets.moving import moves
+from harness.targets.moving import check_path, moves
 
 _INTERPOLATION = re.compile(r"^\$\{([A-Za-z_][\w.]*)\}$")
 
@@ -264,20 +264,18 @@ def _on_path(cfg: DictConfig, density: Density, grid: Grid) -> Density:
     """``density``, after its own check of its path on ``grid`` (a moving target's
     ``check(grid)``, :class:`harness.targets.moving.RotatingMixture`), refused naming the key.
     """
-    check = getattr(density, "check", None)
-    if check is not None:
-        try:
-            check(grid)
-        except ParameterError as err:
-            raise ConfigError(public_key(cfg, "target", err.name), err.value, err.allowed) from None
+    try:
+        check_path(density, grid)
+    except ParameterError as err:
+        raise ConfigError(public_key(cfg, "target", err.name), err.value, err.allowed) from None
     return density
 
 
 def _check_follows(target: Target, control: Control) -> None:
-    """Refuse a law that cannot follow a moving target (its ``follows_moving_target``
-    absent or false) when the target moves.
+    """Refuse a law that cannot follow a moving target
+    (:func:`harness.protocols.follows_moving_target`) when the target moves.
     """
-    if moves(target) and not getattr(control, "follows_moving_target", False):
+    if moves(target) and not follows_moving_target(control):
         raise ConfigError(
             "control",
             type(control).__name__,

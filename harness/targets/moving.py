@@ -65,6 +65,16 @@ class MovingDensity(Protocol):
         ...
 
 
+def check_path(density: object, grid: Grid) -> None:
+    """A density's optional check of its path on ``grid`` (its ``check(grid)``: a moving
+    target refuses, with :class:`~harness.parameters.ParameterError`, a path that leaves
+    the domain, :meth:`RotatingMixture.check`); nothing for a density without one.
+    """
+    check = getattr(density, "check", None)
+    if check is not None:
+        check(grid)
+
+
 def moves(target: Target) -> bool:
     """Whether ``target`` is the start of a moving target (its density moves)."""
     density = target.density
