@@ -277,8 +277,8 @@ def _canonical(path: str) -> str | None:
 def resolve_short_name(app: Any, env: Any, node: Any, contnode: Any) -> Any:
     """Resolve ``node``'s Python reference when exactly one documented object fits it:
     a member of the current class or one of its bases; the definition of a name that
-    a module imports (``harness.estimators.distributed.estimator.DistributedEstimator``); else the only
-    documented object whose full name ends with the target.
+    a module imports (``harness.estimators.distributed.estimator.DistributedEstimator``);
+    else the only documented object whose full name ends with the target.
     """
     if node.get("refdomain") != "py":
         return None

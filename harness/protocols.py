@@ -57,8 +57,9 @@ class Plant(Protocol):
 
     Optional members, read through this module: ``observed`` (:func:`observed`),
     ``headings`` (:func:`headings`), ``tracking_error`` and ``command_age``
-    (:func:`reported`), ``n`` (:func:`robot_count`), ``link`` (:func:`command_link`), ``kde`` (:func:`kernel`),
-    ``resolution`` (:func:`resolution`), ``check`` (:func:`check_parts`).
+    (:func:`reported`), ``n`` (:func:`robot_count`), ``link`` (:func:`command_link`),
+    ``kde`` (:func:`kernel`), ``resolution`` (:func:`resolution`), ``check``
+    (:func:`check_parts`).
     """
 
     density: np.ndarray

@@ -65,7 +65,8 @@ LABELS = {
 
 def reduced(edges: set[tuple[str, str]]) -> set[tuple[str, str]]:
     """The transitive reduction of an acyclic graph: an edge is left out when a longer
-    path joins its ends."""
+    path joins its ends.
+    """
 
     def reach(start: str, skip: tuple[str, str]) -> set[str]:
         seen, todo = set(), [start]
@@ -82,7 +83,8 @@ def reduced(edges: set[tuple[str, str]]) -> set[tuple[str, str]]:
 
 def draw_layers(ax, test) -> None:
     """The layers bottom-up, one row each, each package with its modules, and the
-    package-level imports that no longer path implies."""
+    package-level imports that no longer path implies.
+    """
     layers = test.LAYERS
     graph = test.graph()
     edges = set()
@@ -122,9 +124,13 @@ def draw_layers(ax, test) -> None:
         (xa, ya), (xb, yb) = where[a], where[b]
         ax.add_patch(
             FancyArrowPatch(
-                (xa + 3.6 if xa == xb else xa, ya - 0.36), (xb + 3.6 if xa == xb else xb, yb + 0.36),
-                arrowstyle="-|>", mutation_scale=6, color="#8796b5", linewidth=0.6,
-            )  # fmt: skip
+                (xa + 3.6 if xa == xb else xa, ya - 0.36),
+                (xb + 3.6 if xa == xb else xb, yb + 0.36),
+                arrowstyle="-|>",
+                mutation_scale=6,
+                color="#8796b5",
+                linewidth=0.6,
+            )
         )
     ax.set_xlim(-4.7, 4.7)
     ax.set_ylim(-0.6, len(layers) - 0.4)
@@ -141,8 +147,12 @@ def draw_step(ax) -> None:
         "estimator": (2.6, 2.6, "estimator\npredict under v_n,\nupdate"),
         "control": (5.2, 2.6, "control\nu_{n+1} from\nthe estimate"),
         "limit": (0.0, 1.1, "limit\np_inf under the law's\nfield of K_h p_inf"),
-        "observers": (2.6, -0.3, "observers (each step's StepRecord)\nmetrics, swarm, motion,\n"
-                                 "estimator, guard, live, log, progress"),
+        "observers": (
+            2.6,
+            -0.3,
+            "observers (each step's StepRecord)\nmetrics, swarm, motion,\n"
+            "estimator, guard, live, log, progress",
+        ),
     }
     for x, y, text in nodes.values():
         box = FancyBboxPatch(
@@ -154,8 +164,13 @@ def draw_step(ax) -> None:
     arrows = [
         ((1.0, 2.75), (1.6, 2.75), "measurement\n(KDE)", (1.3, 3.15), 0.0),
         ((3.6, 2.75), (4.2, 2.75), "estimate\n(p_hat, q_hat)", (3.9, 3.15), 0.0),
-        ((5.2, 2.18), (0.4, 2.18), "command u, held over the step\n(a field, robots' velocities)",
-         (2.6, 1.62), -0.25),
+        (
+            (5.2, 2.18),
+            (0.4, 2.18),
+            "command u, held over the step\n(a field, robots' velocities)",
+            (2.6, 1.62),
+            -0.25,
+        ),
         ((0.0, 2.18), (0.0, 1.52), "", None, 0.0),
         ((0.6, 0.68), (1.8, 0.12), "", None, 0.0),
         ((5.0, 2.18), (3.4, 0.12), "", None, 0.0),
@@ -163,9 +178,14 @@ def draw_step(ax) -> None:
     for start, end, label, at, rad in arrows:
         ax.add_patch(
             FancyArrowPatch(
-                start, end, arrowstyle="-|>", mutation_scale=9, color="#3d7a35",
-                linewidth=1.0, connectionstyle=f"arc3,rad={rad}",
-            )  # fmt: skip
+                start,
+                end,
+                arrowstyle="-|>",
+                mutation_scale=9,
+                color="#3d7a35",
+                linewidth=1.0,
+                connectionstyle=f"arc3,rad={rad}",
+            )
         )
         if label:
             ax.text(*at, label, ha="center", va="center", fontsize=5.8, color="#2b5425")

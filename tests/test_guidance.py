@@ -1,5 +1,5 @@
-"""Probabilistic swarm guidance (harness/control/guidance.py, harness/control/waypoints.py): the chains'
-properties against their definitions, the robots' observed moves against the chain, and
+"""Probabilistic swarm guidance (harness/control/guidance.py,
+harness/control/waypoints.py): the chains' properties against their definitions, the robots' observed moves against the chain, and
 closed loops through the real config."""
 
 import itertools

@@ -218,7 +218,8 @@ def compared_strings(tree: ast.AST) -> list[tuple[int, str]]:
         if not isinstance(node, ast.Compare):
             continue
         for operand in [node.left, *node.comparators]:
-            items = operand.elts if isinstance(operand, (ast.Tuple, ast.List, ast.Set)) else [operand]
+            literal = isinstance(operand, (ast.Tuple, ast.List, ast.Set))
+            items = operand.elts if literal else [operand]
             for item in items:
                 if isinstance(item, ast.Constant) and isinstance(item.value, str):
                     out.append((node.lineno, item.value))

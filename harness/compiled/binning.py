@@ -1,7 +1,8 @@
 """Compiled linear binning of the robots onto the KDE's fine nodes
-(:meth:`harness.estimators.kde.KDE.binned`); :meth:`harness.estimators.kde.KDE.bin_weights` is the numpy
-statement that tests compare against. O(N), parallel over fixed chunks of robots, with
-sums whose order does not depend on the thread count.
+(:meth:`harness.estimators.kde.KDE.binned`);
+:meth:`harness.estimators.kde.KDE.bin_weights` is the numpy statement that tests compare
+against. O(N), parallel over fixed chunks of robots, with sums whose order does not
+depend on the thread count.
 """
 
 from __future__ import annotations

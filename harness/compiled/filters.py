@@ -413,7 +413,8 @@ def band_transition_variance(
     (0, 2), (2, 0), (1, 1), (1, -1) as ``(dy, dx)``), read at the pair's lower cell.
     Compiled, rows in parallel from ``PARALLEL_MIN_CELLS`` cells on (each row's
     arithmetic is the same either way); with ``rho = 0`` it is
-    :func:`squared_transition`; :func:`harness.estimators.filters.local.transition_variance_reference`
+    :func:`squared_transition`;
+    :func:`harness.estimators.filters.local.transition_variance_reference`
     is the dense statement.
 
     Raises:

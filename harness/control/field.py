@@ -2,17 +2,19 @@
 
 :class:`~harness.control.paper.PaperControl` (``control=paper``),
 :class:`~harness.control.heat.HeatControl` (``control=heat``) and
-:class:`~harness.control.heat.LangevinControl` (``control=langevin``) are field laws (:class:`FieldLaw`): a velocity field of the estimates, which robots
-follow by interpolation or, when each robot holds its own estimate, evaluate on their
-own (:mod:`harness.control.own_estimates`). They implement :class:`harness.protocols.Control`; the
-functions :func:`~harness.control.paper.paper_law` and :func:`~harness.control.heat.heat_law` hold
-the equations. The laws take the
-density estimate ``p_hat`` (``(ny, nx)``, 1 / length^2), the gradient estimate
-``q_hat`` (``(2, ny, nx)``, 1 / length^3), the target (``p_*``, ``grad p_*`` and
-``log p_*`` on the grid, see :class:`harness.targets.densities.Target`), the gain
-``alpha >= 0`` (length^4 / time, so that ``alpha grad(p / p_*)`` is a velocity) and the
-noise intensity ``sigma >= 0`` (length^2 / time), and return a
-:class:`~harness.velocity.VelocityField` (length / time).
+:class:`~harness.control.heat.LangevinControl` (``control=langevin``) are field laws
+(:class:`FieldLaw`): a velocity field of the estimates, which robots follow by
+interpolation or, when each robot holds its own estimate, evaluate on their own
+(:mod:`harness.control.own_estimates`). They implement
+:class:`harness.protocols.Control`; the functions
+:func:`~harness.control.paper.paper_law` and :func:`~harness.control.heat.heat_law` hold
+the equations. The laws take the density estimate ``p_hat`` (``(ny, nx)``, 1 /
+length^2), the gradient estimate ``q_hat`` (``(2, ny, nx)``, 1 / length^3), the target
+(``p_*``, ``grad p_*`` and ``log p_*`` on the grid, see
+:class:`harness.targets.densities.Target`), the gain ``alpha >= 0`` (length^4 / time, so
+that ``alpha grad(p / p_*)`` is a velocity) and the noise intensity ``sigma >= 0``
+(length^2 / time), and return a :class:`~harness.velocity.VelocityField` (length /
+time).
 
 Moving targets (``target=moving``, :mod:`harness.targets.moving`). Every field law follows
 ``p_*(t)``: given the target at the step's time (:attr:`ControlInput.target
@@ -143,7 +145,8 @@ class FieldLaw:
     move by the law of its own estimate, :meth:`at_cells` (the same law's cell-centre
     values at given cells). :meth:`__call__` gives the field of the estimate and, when
     the estimate carries each robot's own (``estimate.robots``), each robot's velocity
-    from its own estimate at its own position (:func:`harness.control.own_estimates.own_velocities`).
+    from its own estimate at its own position
+    (:func:`harness.control.own_estimates.own_velocities`).
 
     Attributes:
         target: The target on the grid.

@@ -1,4 +1,6 @@
-"""``estimator``: the numbers an estimator publishes (``Estimate.metrics``), into the step's values."""
+"""``estimator``: the numbers an estimator publishes (``Estimate.metrics``), into the step's
+values.
+"""
 
 from __future__ import annotations
 

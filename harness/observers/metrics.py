@@ -3,10 +3,10 @@ the log).
 
 All L2 norms are :meth:`harness.grid.Grid.l2`, ``(dx dy sum f^2)^(1/2)``.
 
-The field metrics (:func:`metrics`, observer ``metrics``, :class:`FieldMetrics`) compare the estimates and the plant's
-mean-field density ``p`` (the ``meanfield`` plant's state; the ``agents`` plant's
-deterministic ``N -> infinity`` limit ``p_inf``) with the target. Where the robots are is the
-observer ``swarm`` (:mod:`harness.observers.swarm`).
+The field metrics (:func:`metrics`, observer ``metrics``, :class:`FieldMetrics`) compare
+the estimates and the mean-field density ``p`` (the ``meanfield`` plant's state; with
+robots the loop's deterministic ``N -> infinity`` limit ``p_inf``) with the target.
+Where the robots are is the observer ``swarm`` (:mod:`harness.observers.swarm`).
 
 ``phat_smoothed_target_l2`` = ``||p_hat - K_h p_*||`` (every step) is the Fig. 2
 quantity for a debiased loop, whose estimates settle on ``K_h p_*``, not ``p_*``.

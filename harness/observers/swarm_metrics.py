@@ -2,8 +2,9 @@
 
 Three quantities say where the robots are, whatever the filters believe:
 
-* the smoothed target ``K_h * p_*`` on the grid (:func:`harness.estimators.smoothing.smoothed_density`), with the
-  KDE's own kernel, wall images included (exact for a density with a closed form);
+* the smoothed target ``K_h * p_*`` on the grid
+  (:func:`harness.estimators.smoothing.smoothed_density`), with the KDE's own kernel,
+  wall images included (exact for a density with a closed form);
 * ``swarm_l2 = ||K_h * mu_N - K_h * p_*||`` (:func:`swarm_l2`, 1 / length), with
   ``mu_N = (1/N) sum_k delta_{X_k}`` the robots' empirical measure and ``K_h * mu_N``
   the KDE of :mod:`harness.estimators.kde`;

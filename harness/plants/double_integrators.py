@@ -58,8 +58,8 @@ class DoubleIntegrators(Agents):
         a_max: Nominal acceleration limit (length / s^2), ``> 0``.
         gain: Nominal velocity-loop gain ``g`` (1 / s), ``> 0``.
         spread: Relative spread of the per-robot limit and gain, as for
-            :class:`~harness.plants.unicycles.Unicycles` (drawn from the stream ``[seed, 4]``: ``a_max``, then
-            ``gain``).
+            :class:`~harness.plants.unicycles.Unicycles` (drawn from the stream
+            ``[seed, 4]``: ``a_max``, then ``gain``).
 
     The robots start at rest.
     """

@@ -7,8 +7,9 @@ in 1 / length^2.
 
 The three densities here also give two quantities in closed form, the optional methods
 of :class:`~harness.targets.densities.Density` (callers go through
-:func:`harness.estimators.smoothing.smoothed_density` and :func:`harness.estimators.smoothing.cell_masses`,
-which fall back to approximations for a density without them):
+:func:`harness.estimators.smoothing.smoothed_density` and
+:func:`harness.estimators.smoothing.cell_masses`, which fall back to approximations for
+a density without them):
 
 * ``smoothed(grid, h, mirror)``: ``K_h * p`` at the cell centres, with ``K_h`` the KDE's
   kernel and its wall images (:mod:`harness.observers.swarm_metrics` describes the kernel).
