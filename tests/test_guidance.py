@@ -1,6 +1,6 @@
 """Probabilistic swarm guidance (harness/control/guidance.py,
-harness/control/waypoints.py): the chains' properties against their definitions, the robots' observed moves against the chain, and
-closed loops through the real config."""
+harness/control/waypoints.py): the chains' properties against their definitions, the
+robots' observed moves against the chain, and closed loops through the real config."""
 
 import itertools
 import math
