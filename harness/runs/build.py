@@ -32,17 +32,15 @@ from harness.protocols import Control, Estimator, Plant
 from harness.runs.checks import (
     SHARED_BLOCKS,
     ConfigError,
-    DiskNeed,
     check_built,
-    check_memory,
     check_resolvable,
     check_shared,
     check_unread,
     density_on_grid,
-    disk_need,
     target_on_grid,
 )
 from harness.runs.identity import RunIdentity, choices, resolved
+from harness.runs.resources import DiskNeed, check_memory, disk_need
 from harness.targets.densities import Density, Target
 from harness.targets.moving import moves
 
