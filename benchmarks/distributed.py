@@ -198,7 +198,7 @@ def bench_app(quick: bool) -> bool:
 def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> None:
     """Build the app's loop, take ``steps`` steps, print the peak resident memory against
     the estimate the harness prints and checks before a run
-    (:func:`harness.runs.checks.check_memory`); run in a process of its own.
+    (:func:`harness.runs.resources.check_memory`); run in a process of its own.
     """
     import resource
 
@@ -206,7 +206,7 @@ def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> No
     from harness.grid import Grid as GridType
     from harness.loop import trajectory
     from harness.runs.build import build
-    from harness.runs.checks import check_memory
+    from harness.runs.resources import check_memory
 
     # two rounds before the start: the memory does not depend on them, the time does
     overrides = ["estimator=distributed", f"agents.n={n_robots}", f"estimator.radius={radius}",

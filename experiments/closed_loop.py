@@ -7,7 +7,7 @@ Writes ``run.mcap`` into the Hydra run (or job) directory; see ``harness/observe
 for its contract and ``python -m analysis.figures RUN_DIR`` for the figures. A config
 value that is not allowed stops the app before anything is written, with one line
 naming the key, the value and what is allowed, and exit status 2 (the check runs in
-:class:`harness.runs.jobs.CheckCallback`; in a multirun each job checks its own config).
+:class:`harness.runs.app.CheckCallback`; in a multirun each job checks its own config).
 Hydra's own flags (``--cfg job``, ``--info``, ``--help``, ``-cn``, ``-m``) work as usual.
 The configs are read from :data:`harness.api.CONFIG_DIR` (``conf/``, shipped inside the
 package), so the app runs from any directory, installed or not; ``harness.api`` composes
@@ -57,8 +57,8 @@ from omegaconf import DictConfig
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.api import CONFIG_DIR
+from harness.runs.app import checked, finish_sweep, run_job
 from harness.runs.checks import ConfigError, describe
-from harness.runs.jobs import checked, finish_sweep, run_job
 from harness.runs.run import DiskFull, Terminated, run
 
 
@@ -141,7 +141,7 @@ if __name__ == "__main__":
     for sig in {signal.SIGTERM, signal.SIGHUP} - IGNORED:
         signal.signal(sig, stop_before_run)
     # A sweep interrupted (SIGINT, SIGTERM, SIGHUP) or whose launcher failed still
-    # writes its status table (harness.runs.jobs.finish_sweep) and exits non-zero.
+    # writes its status table (harness.runs.app.finish_sweep) and exits non-zero.
     try:
         main()
     except (HydraException, OmegaConfBaseException) as err:

@@ -27,12 +27,14 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import Writer
 
 from analysis.load import LogWarning, load_run
-from harness.runs import checks
+from harness.runs import resources
+from harness.runs.app import MAX_NAME_BYTES, job_dir_name, run_job
 from harness.runs.build import build
 from harness.runs.checks import ConfigError
 from harness.runs.identity import config_hash
-from harness.runs.jobs import MAX_NAME_BYTES, collect, job_dir_name, run_job, verify_log
+from harness.runs.resume import verify_log
 from harness.runs.run import DiskFull, run
+from harness.runs.status import collect
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ["grid.n=8", "agents.n=50", "sim.t_final=0.06", "sim.dt=0.02", "log.progress=off"]
@@ -250,7 +252,7 @@ def test_memory_estimate_bounds_the_measured_peak(compose):
             next(steps)
         peak = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
-        estimate = checks.check_memory(cfg, parts.grid, available=(10**15, "test"))
+        estimate = resources.check_memory(cfg, parts.grid, available=(10**15, "test"))
         assert estimate >= peak, (overrides, estimate, peak)
 
 
@@ -267,7 +269,9 @@ def test_dense_filter_estimate_grows_as_cells_squared_and_is_refused(compose):
     assert dense[1] / dense[0] > 12 and local[1] / local[0] < 10  # M^2 against ~M^1.5
     grid64 = Grid.square(64)
     with pytest.raises(ConfigError, match=r"filter.engine='reference'.*memory.*GB"):
-        checks.check_memory(compose(["filter.engine=reference", "grid.n=64"]), grid64, (10**9, "t"))
+        resources.check_memory(
+            compose(["filter.engine=reference", "grid.n=64"]), grid64, (10**9, "t")
+        )
 
 
 def test_log_estimate_bounds_the_log_and_a_full_disk_is_refused(tmp_path, compose, monkeypatch):
@@ -276,7 +280,9 @@ def test_log_estimate_bounds_the_log_and_a_full_disk_is_refused(tmp_path, compos
     built = build(cfg)
     estimate, _ = built.observers["log"].disk_bytes(300)
     assert estimate >= (tmp_path / "a" / "run.mcap").stat().st_size
-    monkeypatch.setattr(checks.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 1000))
+    monkeypatch.setattr(
+        resources.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 1000)
+    )
     with pytest.raises(ConfigError, match=r"log.*would need about"):
         run(cfg, tmp_path / "b")
     assert not (tmp_path / "b").exists()

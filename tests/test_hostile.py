@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 from harness.runs.build import build
 from harness.runs.checks import ConfigError
-from harness.runs.jobs import verify_log
+from harness.runs.resume import verify_log
 from harness.runs.run import run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,7 +78,7 @@ def test_concurrent_runs_into_one_directory_write_one_log(tmp_path, compose):
 
 
 def _checked_and_waiting(cfg, ready, done):
-    from harness.runs.jobs import CheckCallback
+    from harness.runs.app import CheckCallback
 
     CheckCallback().on_run_start(cfg)  # passed its checks: about to open its log
     ready.set()
@@ -118,7 +118,7 @@ def test_sweep_resumed_after_a_code_change_reruns_every_job_whose_code_differs(
 
     from analysis import sweep
     from harness.runs import identity
-    from harness.runs.jobs import run_job
+    from harness.runs.app import run_job
 
     repo = tmp_path / "code"
     repo.mkdir()
@@ -155,7 +155,7 @@ def test_sweep_resumed_after_a_code_change_reruns_every_job_whose_code_differs(
 def test_resume_never_overwrites_an_unfinished_log_of_another_config(tmp_path, compose):
     import json
 
-    from harness.runs.jobs import run_job
+    from harness.runs.app import run_job
 
     out = tmp_path / "job"
     other = compose([*SMALL, "seed=9"])
@@ -189,25 +189,26 @@ def test_a_disk_full_during_a_sweep_records_the_reason_and_prints_the_table(
 ):
     import json
 
-    from harness.runs import jobs
+    from harness.runs.app import run_job
+    from harness.runs.status import report
 
     # the disk fills up after the up-front check (another process writing)
     monkeypatch.setattr("harness.runs.run.check_disk", lambda *args: 0)
     rates = ["log.field_every=1", "log.positions_every=1", "log.progress=off"]
     cfg = compose(["grid.n=10", "agents.n=2000", "sim.t_final=2", *rates])
     (tiny_disk / "sweep_status.md").write_text("| an older table |\n")
-    jobs.run_job(cfg, tiny_disk / "job", 0, ["seed=0"])
+    run_job(cfg, tiny_disk / "job", 0, ["seed=0"])
     status = json.loads((tiny_disk / "job" / "job_status.json").read_text())
     assert status["state"] == "aborted" and "disk full" in status["reason"], status
     capfd.readouterr()
-    assert jobs._report(tiny_disk) == 1
+    assert report(tiny_disk) == 1
     out, err = capfd.readouterr()
     assert "| aborted |" in out and "disk full" in out  # the table is printed
     assert "Traceback" not in err
     assert (tiny_disk / "sweep_status.md").stat().st_size > 0  # old or new, never empty
     assert not list(tiny_disk.rglob("*.tmp"))
     (tiny_disk / "job" / "run.mcap").unlink()  # room again: the table is written
-    assert jobs._report(tiny_disk) == 1
+    assert report(tiny_disk) == 1
     assert "| aborted |" in (tiny_disk / "sweep_status.md").read_text()
 
 
@@ -365,14 +366,14 @@ def _tree(root, files):
 )
 def test_memory_limits_of_every_cgroup_level_are_found(tmp_path, compose, files, source):
     from harness.grid import Grid
-    from harness.runs import checks
+    from harness.runs import resources
 
     files["proc/meminfo"] = "MemTotal: 64000000 kB\nMemAvailable: 60000000 kB\n"
-    have = checks.memory_available(_tree(tmp_path, files))
+    have = resources.memory_available(_tree(tmp_path, files))
     assert have is not None and have[0] == 300_000_000 and source in have[1]
     cfg = compose([*SMALL[:1], "agents.n=10000000", *SMALL[2:]])  # about 2 GB
     with pytest.raises(ConfigError, match="agents.n=10000000: .*" + source):
-        checks.check_memory(cfg, Grid(8, 8), have)
+        resources.check_memory(cfg, Grid(8, 8), have)
 
 
 def test_the_address_space_limit_is_a_memory_limit(tmp_path):
@@ -710,7 +711,7 @@ def test_a_fifo_or_device_in_place_of_a_log_is_never_read_or_trusted(tmp_path, s
     import json
 
     from analysis import diff
-    from harness.runs.jobs import collect
+    from harness.runs.status import collect
 
     fifo = tmp_path / "fifo" / "run.mcap"
     fifo.parent.mkdir()

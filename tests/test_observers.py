@@ -12,8 +12,8 @@ from omegaconf import OmegaConf
 from harness.fokker_planck import NumericalError
 from harness.observers.base import RunContext, Status
 from harness.observers.guard import DivergenceGuard
+from harness.runs.app import CheckCallback, checked
 from harness.runs.build import build
-from harness.runs.jobs import CheckCallback, checked
 from harness.runs.run import run
 
 ORDER = ["metrics", "swarm", "motion", "estimator", "guard", "live", "log", "progress"]

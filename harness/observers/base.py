@@ -117,3 +117,21 @@ def seconds(observer: Observer) -> float:
     ``seconds``; the logger does), else 0.
     """
     return float(getattr(observer, "seconds", 0.0))
+
+
+def disk_bytes(observer: Observer, robots: int) -> tuple[int, str] | None:
+    """What ``observer`` says it will write (its optional ``disk_bytes(robots)``): an
+    upper estimate in bytes and the parameter that sets most of it, for a run with
+    ``robots`` robots; None for an observer that writes no file.
+    """
+    estimate = getattr(observer, "disk_bytes", None)
+    return None if estimate is None else estimate(robots)
+
+
+def probe(observer: Observer) -> None:
+    """``observer``'s optional ``probe()``: a check, before a sweep's job starts, that it
+    can start (the live view's port), raising what ``initialize`` would.
+    """
+    check = getattr(observer, "probe", None)
+    if check is not None:
+        check()

@@ -33,7 +33,6 @@ from harness.runs.checks import (
     SHARED_BLOCKS,
     ConfigError,
     check_built,
-    check_memory,
     check_resolvable,
     check_shared,
     check_unread,
@@ -41,6 +40,7 @@ from harness.runs.checks import (
     target_on_grid,
 )
 from harness.runs.identity import RunIdentity, choices, resolved
+from harness.runs.resources import check_memory
 from harness.targets.densities import Density, Target
 from harness.targets.moving import check_path, moves
 

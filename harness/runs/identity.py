@@ -2,7 +2,7 @@
 the provenance.
 
 :func:`config_hash` and :func:`code_identity` decide together whether a sweep's job is
-done already (:mod:`harness.runs.jobs`): a log counts only for the same config computed by
+done already (:mod:`harness.runs.resume`): a log counts only for the same config computed by
 the same code; :func:`provenance` says which code, packages and machine made the log.
 """
 

@@ -32,7 +32,8 @@ from harness.observers.base import Observer, RunContext, Status, seconds
 from harness.observers.log import LOG_FILE
 from harness.parameters import ParameterError
 from harness.runs.build import build
-from harness.runs.checks import ConfigError, check_disk, disk_need
+from harness.runs.checks import ConfigError
+from harness.runs.resources import check_disk, disk_need
 
 
 class Terminated(Exception):

@@ -2,7 +2,7 @@
 of how many, the time since it started and an estimate of the time left.
 
 A :class:`SweepMonitor` runs as a thread in the process that launches the sweep (started
-and stopped by :class:`harness.runs.jobs.SweepStatusCallback`). It reads nothing but the
+and stopped by :class:`harness.runs.app.SweepStatusCallback`). It reads nothing but the
 jobs' ``job_status.json`` files in the sweep directory, so it works for every launcher
 whose jobs write there: the joblib launcher's local workers and SLURM's (submitit) jobs
 on other nodes alike. When it starts it writes ``.sweep_run`` into the sweep directory

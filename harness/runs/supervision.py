@@ -1,0 +1,299 @@
+"""Job supervision: claiming a run's or a job's directory, running a job in a process of
+its own, and stopping a sweep's running jobs.
+
+* A single run claims its directory with ``.run.lock`` (:func:`claim_run_dir`, holding
+  its process id) before Hydra writes anything, so two runs never share one; a job of a
+  sweep holds ``.job.lock`` while it runs (:func:`claim_job_dir`), so a second process
+  with the same directory (a concurrent sweep into the same ``hydra.sweep.dir``, or
+  points differing only in presentation keys) waits for the first, then resumes by
+  content. A lock whose process is gone is taken over.
+* A job runs in a process of its own (:func:`run_isolated`, forked from the launcher's
+  worker, which only waits), so a job killed by the kernel's out-of-memory killer or by
+  hand costs only itself: the worker records it as ``killed`` and the other jobs go on.
+  The build reaches the child through a :class:`Handoff`, which the parent empties once
+  the child has started.
+* SIGINT, SIGTERM and SIGHUP to the worker are passed on to its job; the sweep's main
+  process passes them on to every running job (:func:`stop_jobs`), which finalise their
+  logs as ``aborted``.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any, TextIO
+
+import numba
+
+from harness.runs.build import Experiment
+from harness.runs.checks import ConfigError
+from harness.runs.run import Terminated, run
+from harness.runs.status import STATUS_FILE, alive, as_int, read_status, write_status
+
+RUN_LOCK = ".run.lock"
+"""The file (holding the process id) by which a single run claims its directory."""
+
+
+LOCK_FILE = ".job.lock"
+"""The file (holding the process id) a job of a sweep holds while it runs."""
+
+
+def check_dir_name(key: str, path: Path) -> None:
+    """Refuse a directory path with a name too long for a file system (255 bytes) or a
+    NUL byte, before anything is created.
+
+    Raises:
+        ConfigError: naming ``key``.
+    """
+    for part in Path(path).parts:
+        if "\0" in part or len(part.encode(errors="surrogateescape")) > 255:
+            raise ConfigError(
+                key, str(path)[:80] + "...", "a path whose names are at most 255 bytes"
+            )
+
+
+def usable_dir(key: str, path: Path) -> None:
+    """Create ``path`` (with its parents) and check that a file can be created in it.
+
+    Raises:
+        ConfigError: naming ``key``, for a name too long, a path under a file, a device
+            (``/dev/null``), or a read-only or full file system.
+    """
+    check_dir_name(key, path)
+    probe = path / f".probe.{os.getpid()}"
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        if not path.is_dir():
+            raise NotADirectoryError(20, "not a directory", str(path))
+        probe.touch()
+        probe.unlink()
+    except OSError as err:
+        raise ConfigError(
+            key, str(path), f"a directory that can be created and written ({err.strerror})"
+        ) from None
+
+
+def claim_run_dir(out: Path) -> None:
+    """Create ``out`` and claim it for this process: ``.run.lock`` created exclusively
+    (a lock left by a process that is gone is taken over) and removed when the process
+    ends; the run's log is created exclusively too (:func:`harness.runs.run.run`).
+
+    Raises:
+        ConfigError: for a directory that cannot be created or written (a path under a
+            file, a read-only file system, ``/dev/null``), or one another running
+            process has claimed.
+    """
+    lock = out / RUN_LOCK
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        if not out.is_dir():
+            raise NotADirectoryError(20, "not a directory", str(out))
+        while True:
+            try:
+                fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+                break
+            except FileExistsError:
+                holder = _lock_holder(lock)
+                if holder and holder != os.getpid() and alive(holder):
+                    raise ConfigError(
+                        "hydra.run.dir",
+                        str(out),
+                        f"a directory no other run is using (process {holder} runs there)",
+                    ) from None
+                with contextlib.suppress(FileNotFoundError):
+                    lock.unlink()  # stale: its process is gone
+        try:
+            os.write(fd, str(os.getpid()).encode())
+        finally:
+            os.close(fd)
+    except OSError as err:
+        raise ConfigError(
+            "hydra.run.dir",
+            str(out),
+            f"a directory that can be created and written ({err.strerror})",
+        ) from None
+    atexit.register(_release, lock, os.getpid())
+
+
+def _lock_holder(lock: Path) -> int:
+    """The process id in a lock file (0 when unreadable)."""
+    try:
+        return int(lock.read_text().strip() or "0")
+    except (OSError, ValueError):
+        return 0
+
+
+def _release(lock: Path, pid: int) -> None:
+    """Remove ``lock`` if process ``pid`` (this one, not a forked child) holds it."""
+    if os.getpid() == pid and _lock_holder(lock) == pid:
+        with contextlib.suppress(OSError):
+            lock.unlink()
+
+
+@contextlib.contextmanager
+def claim_job_dir(out: Path) -> Iterator[None]:
+    """Hold the job directory's lock file (:data:`LOCK_FILE`) while the job runs: a
+    second process with the same directory waits for the first (polling every 0.5 s),
+    then resumes by content.
+    """
+    lock = out / LOCK_FILE
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            break
+        except FileExistsError:
+            holder = _lock_holder(lock)
+            if holder and holder != os.getpid() and alive(holder):
+                time.sleep(0.5)
+                continue
+            with contextlib.suppress(OSError):
+                lock.unlink()  # stale: its process is gone
+    try:
+        with contextlib.suppress(OSError):  # a full disk: the lock exists, unnamed
+            os.write(fd, str(os.getpid()).encode())
+        os.close(fd)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            lock.unlink()
+
+
+class Handoff:
+    """A build on its way from where it was made to where it runs, keyed by the hash of
+    its config (:func:`~harness.runs.identity.config_hash`), so a run is built once.
+
+    It holds at most one build: this process runs one run at a time. The one instance
+    is :data:`harness.runs.app.BUILDS` (why Hydra needs one: :mod:`harness.runs.app`).
+    A forked job's child takes its copy; the parent drops its own once the child has
+    started (:func:`run_isolated`), since keeping it would double the pages the child
+    writes to.
+    """
+
+    def __init__(self) -> None:
+        self._key = ""
+        self._build: Experiment | None = None
+
+    def give(self, key: str, build: Experiment) -> None:
+        """Hold ``build`` for the config of hash ``key``, dropping any other held."""
+        self._key, self._build = key, build
+
+    def take(self, key: str) -> Experiment | None:
+        """The build held for ``key``, handed on once (None when there is none)."""
+        if self._build is None or key != self._key:
+            return None
+        build, self._key, self._build = self._build, "", None
+        return build
+
+    def drop(self) -> None:
+        """Drop the build held, if any."""
+        self._key, self._build = "", None
+
+
+def say(text: str, stream: TextIO | None = None, *, tty: bool = False) -> None:
+    """Print a job's line (on standard output by default); when the sweep's progress
+    line is on a terminal (``tty``) and ``stream`` is that terminal, clear that line
+    first (it is redrawn below).
+    """
+    stream = sys.stdout if stream is None else stream
+    clear = ""
+    if tty:
+        with contextlib.suppress(AttributeError, ValueError, OSError):
+            clear = "\r\x1b[K" if stream.isatty() else ""
+    print(clear + text, file=stream, flush=True)
+
+
+def _child(builds: Handoff, key: str, out: Path, tty: bool) -> None:
+    """The job's own process: run the build handed to it and record the outcome; exit
+    status 0 after any recorded outcome (a killed process has none).
+    """
+    with contextlib.suppress(OSError):  # the out-of-memory killer picks a job, not the sweep
+        Path("/proc/self/oom_score_adj").write_text("500")
+    # one core per job: the sweep runs a job per core, so the compiled loops stay serial
+    numba.set_num_threads(1)
+    try:
+        exp = builds.take(key)
+        if exp is None:
+            raise LookupError(f"no build handed on for config {key}")
+        result = run(exp, out)
+    except (KeyboardInterrupt, Terminated) as err:
+        write_status(out, state="aborted", reason=f"interrupted: {err}".strip(), pid=0)
+        os._exit(3)
+    except Exception as err:  # recorded, not raised: the other jobs go on
+        write_status(out, state="aborted", reason=f"{type(err).__name__}: {err}", pid=0)
+        say(f"job failed: {type(err).__name__}: {err}", sys.stderr, tty=tty)
+        os._exit(1)
+    write_status(out, state=result.state, reason=result.reason, wall_s=result.wall_s, pid=0)
+    os._exit(0)
+
+
+def run_isolated(builds: Handoff, key: str, out: Path, *, tty: bool = False) -> int:
+    """Run the build ``builds`` holds for ``key`` in a forked process and wait for it;
+    the child writes its outcome into the job's status, the parent its pid. Signals to
+    this process are passed on to the job.
+
+    Args:
+        builds: The hand-off holding the build (emptied here once the child started).
+        key: The hash of the build's config.
+        out: The job's directory.
+        tty: Whether the sweep's progress line is on a terminal (:func:`say`).
+
+    Returns:
+        The child's exit code (negative: killed by that signal).
+
+    Raises:
+        OSError: when no process can be forked (the build is still held then).
+    """
+    ctx = multiprocessing.get_context("fork")
+    proc = ctx.Process(target=_child, args=(builds, key, out, tty), daemon=False)
+    proc.start()  # the child holds its copy of the build from here on
+    builds.drop()
+    assert proc.pid is not None
+    write_status(out, pid=proc.pid)
+    previous = {}
+    if threading.current_thread() is threading.main_thread():
+
+        def forward(signum: int, frame: Any) -> None:
+            with contextlib.suppress(OSError):
+                os.kill(proc.pid, signum)  # type: ignore[arg-type]
+
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            previous[sig] = signal.signal(sig, forward)
+    try:
+        proc.join()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return proc.exitcode if proc.exitcode is not None else -1
+
+
+def running_jobs(sweep_dir: Path) -> list[int]:
+    """Pids of the jobs of ``sweep_dir`` whose status says ``running``."""
+    pids = []
+    for status_file in sweep_dir.glob(f"*/{STATUS_FILE}"):
+        status = read_status(status_file.parent)
+        pid = as_int(status.get("pid"), 0)
+        if status.get("state") == "running" and pid and pid != os.getpid() and alive(pid):
+            pids.append(pid)
+    return pids
+
+
+def stop_jobs(sweep_dir: Path, signum: int, wait_s: float = 30.0) -> None:
+    """Send ``signum`` to every running job of the sweep and wait (up to ``wait_s``)
+    for them to finalise their logs.
+    """
+    pids = running_jobs(sweep_dir)
+    for pid in pids:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signum)
+    deadline = time.monotonic() + wait_s
+    while pids and time.monotonic() < deadline:
+        pids = [p for p in pids if alive(p)]
+        time.sleep(0.05)
