@@ -33,7 +33,7 @@ from typing import Any, TextIO
 
 import numba
 
-from harness.runs.build import Experiment
+from harness.loop import Experiment
 from harness.runs.checks import ConfigError
 from harness.runs.run import Terminated, run
 from harness.runs.status import STATUS_FILE, alive, as_int, read_status, write_status
