@@ -1,5 +1,9 @@
 """``estimator=injected``: the plant's mean-field density plus a seeded error of known L2
 size, for the ISS gain curves of the laws (``docs/laws.md``).
+
+The error's shape (``estimator.shape``) is a class, chosen once when the estimator is
+built: ``smooth`` (:class:`RotatingModes`) or ``hole`` (:class:`Hole`); both give
+``(eps, eps_g)`` by ``error(t, p)``.
 """
 
 from __future__ import annotations
@@ -174,8 +178,9 @@ class InjectedEstimator:
         shapes: dict[str, Callable[[], RotatingModes | Hole]] = {
             "smooth": lambda: RotatingModes(grid, delta, omega, modes, rng),
             "hole": lambda: Hole(grid, delta, (cx, cy), radius),
-        }  # estimator.shape: the class of each value
-        require(shape in shapes, "shape", shape, f"one of {', '.join(shapes)}")
+        }  # estimator.shape: each value's class, from the checked parameters
+        known = isinstance(shape, str) and shape in shapes
+        require(known, "shape", shape, f"one of {', '.join(shapes)}")
         self.grid, self.delta = grid, delta
         self.shape = shapes[shape]()
 

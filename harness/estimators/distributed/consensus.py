@@ -146,12 +146,12 @@ class FirstOrder(ConsensusForm):
         self, c: DynamicAverageConsensus, mix: Mixer, rounds: int, delta: np.ndarray | None
     ) -> None:
         """Eq. ``DAC``: ``z <- W^m (z + delta)``."""
-        assert c.z is not None and c._buf is not None
+        assert c.z is not None and c.buffer is not None
         if delta is not None:
             c.z += delta
         for _ in range(rounds):
-            mix(c.z, c._buf)
-            c.z, c._buf = c._buf, c.z
+            mix(c.z, c.buffer)
+            c.z, c.buffer = c.buffer, c.z
 
     def reference(
         self,
@@ -289,7 +289,9 @@ class DynamicAverageConsensus:
     coefficients).
 
     State ``z`` of shape ``(N, C)``: ``C = M`` grid values, or ``C = K`` band
-    coefficients; the PI form keeps ``w`` of the same shape (None otherwise).
+    coefficients; the PI form keeps ``w`` of the same shape (None otherwise). The form
+    (:meth:`ConsensusForm.run`) moves ``z`` and ``w``, and may swap ``z`` with
+    ``buffer``, a spare array of ``z``'s shape.
 
     Args:
         grid: The grid.
@@ -331,7 +333,7 @@ class DynamicAverageConsensus:
         self.columns = self.messages.size
         self.z: np.ndarray | None = None
         self.w: np.ndarray | None = None
-        self._buf: np.ndarray | None = None
+        self.buffer: np.ndarray | None = None
         self._factors: KernelFactors | None = None
         self.eps = 0.0
 
@@ -388,7 +390,7 @@ class DynamicAverageConsensus:
         n = positions.shape[1]
         self.z = np.zeros((n, self.columns))
         self.w = self.form.integral(self.z)
-        self._buf = np.empty_like(self.z)
+        self.buffer = np.empty_like(self.z)
         self._factors = kernel_factors(self.grid, positions, self.bandwidth)
         self._mix(w, self.initial_rounds, positions, self.messages.increment(self._factors, None))
         return self.observation()

@@ -169,7 +169,7 @@ class RobotEstimators:
     def memory_bytes(self) -> int:
         """Bytes held in per-robot arrays (consensus states and buffer, filter states)."""
         c = self.consensus
-        arrays = [c.z, c.w, c._buf, self.filters.x, self.filters.d]
+        arrays = [c.z, c.w, c.buffer, self.filters.x, self.filters.d]
         arrays += list(c._factors or ())
         return int(sum(a.nbytes for a in arrays if a is not None))
 
