@@ -106,7 +106,6 @@ class RobotEstimators:
             raise ValueError("give radius, k_nearest or both")
         design = Design() if design is None else design
         self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
-        self.design = design
         self.share = design.sharing()
         self.filters = RobotFilters(grid, dt, MeasurementModel(n_robots, bandwidth, settings))
         self.messages = design.carrier(grid, bandwidth)
