@@ -10,9 +10,16 @@ import scipy.fft as sfft
 import scipy.sparse as sp
 
 from harness.estimators.distributed.band import BandMessages
-from harness.estimators.distributed.consensus import DynamicAverageConsensus, consensus_weights
+from harness.estimators.distributed.consensus import (
+    ConsensusForm,
+    DynamicAverageConsensus,
+    FirstOrder,
+    ProportionalIntegral,
+)
+from harness.estimators.distributed.design import Design
 from harness.estimators.distributed.estimator import RobotEstimators
 from harness.estimators.distributed.graph import communication_graph
+from harness.estimators.distributed.mixing import consensus_weights
 from harness.estimators.distributed.robot_kde import kernel_factors, robot_kernels
 from harness.estimators.filters.common import FilterSettings
 from harness.grid import Grid
@@ -22,6 +29,7 @@ from harness.records import Command, Estimate, StepRecord
 from harness.runs.build import build
 
 H = 0.04
+FORMS: dict[str, type[ConsensusForm]] = {"first_order": FirstOrder, "pi": ProportionalIntegral}
 
 
 def _ring(n: int, radius: float = 0.3) -> np.ndarray:
@@ -44,8 +52,8 @@ def test_pi_tracks_a_ramp_without_lag_where_first_order_lags_by_its_formula(rng,
     lag = np.linalg.pinv(np.eye(n) - wm) @ wm @ pi_c  # on 1^perp: (I - W^m)^+ W^m Pi c
     assert np.linalg.norm(lag) > 0.5 * np.linalg.norm(pi_c)  # a real lag, not a tiny one
     errors = {}
-    for form in ("first_order", "pi"):
-        dac = DynamicAverageConsensus(g, H, rounds=rounds, form=form)
+    for form in FORMS:
+        dac = DynamicAverageConsensus(g, H, rounds=rounds, form=FORMS[form]())
         dac.initialize(pos, w)
         z0 = rng.normal(size=(n, g.size))
         dac.z = z0.copy()
@@ -62,12 +70,12 @@ def test_pi_tracks_a_ramp_without_lag_where_first_order_lags_by_its_formula(rng,
     assert np.abs(errors["pi"]).max() < 1e-9 * np.abs(pi_c).max()
 
 
-@pytest.mark.parametrize("form", ["first_order", "pi"])
+@pytest.mark.parametrize("form", [FirstOrder(), ProportionalIntegral(0.4)])
 def test_compiled_rounds_match_the_plain_statement_on_moving_robots(rng, form):
     g = Grid.square(12)
     n = 70
     pos = rng.random((2, n))
-    dac = DynamicAverageConsensus(g, H, rounds=2, gain=0.8, form=form, integral_gain=0.4)
+    dac = DynamicAverageConsensus(g, H, rounds=2, gain=0.8, form=form)
     dac.initialize(pos, consensus_weights(communication_graph(pos, radius=0.2), 0.8)[0])
     z, acc = dac.z.copy(), None if dac.w is None else dac.w.copy()
     for _ in range(12):
@@ -78,7 +86,7 @@ def test_compiled_rounds_match_the_plain_statement_on_moving_robots(rng, form):
         z = dac.step(pos, w).copy()
         acc = None if dac.w is None else dac.w.copy()
         np.testing.assert_allclose(z, ref, atol=1e-12 * abs(ref).max())
-        if form == "pi":
+        if isinstance(form, ProportionalIntegral):
             assert ref_w is not None and acc is not None
             np.testing.assert_allclose(acc, ref_w, atol=1e-12 * abs(ref).max())
 
@@ -109,7 +117,7 @@ def test_one_pi_round_acts_on_a_laplacian_mode_as_the_gain_rule_says(k_i):
     mu = eps * 2 * n
     assert mu == pytest.approx(2 * n / (1 + n))
     pos = np.random.default_rng(0).random((2, 2 * n))
-    dac = DynamicAverageConsensus(g, H, rounds=1, form="pi", integral_gain=k_i)
+    dac = DynamicAverageConsensus(g, H, rounds=1, form=ProportionalIntegral(k_i))
     dac.initialize(pos, w)
     e = np.repeat(np.r_[np.ones(n), -np.ones(n)][:, None], g.size, axis=1)
     dac.z, dac.w = e.copy(), np.zeros_like(e)
@@ -128,15 +136,16 @@ def test_agreement_is_w_to_the_rounds_on_grids_and_on_the_band_part(rng):
     settings = FilterSettings(band_limit=np.inf)
     p_hat = rng.random((12, g.size))
     for messages in ("grid", "band"):
-        est = RobotEstimators(g, 0.01, 12, H, settings, k_nearest=2, share="command",
-                              command_rounds=3, messages=messages, band_limit=2.0)  # fmt: skip
+        design = Design(share="command", command_rounds=3, messages=messages, band_limit=2.0)
+        est = RobotEstimators(g, 0.01, 12, H, settings, k_nearest=2, design=design)
         est._graph(pos)
         wm = np.linalg.matrix_power(est._w.toarray(), 3)
         agreed = est.agree(p_hat)
         if messages == "grid":
             expected = wm @ p_hat
         else:
-            mask = est.band.band.mask
+            assert isinstance(est.messages, BandMessages)
+            mask = est.messages.band.mask
             coef = sfft.dctn(p_hat.reshape(12, 30, 30), type=2, norm="ortho", axes=(1, 2)) * mask
             inside = sfft.idctn(coef, type=2, norm="ortho", axes=(1, 2)).reshape(12, -1)
             expected = p_hat - inside + wm @ inside
@@ -169,8 +178,8 @@ def test_band_messages_reconstruct_the_band_projected_grid_consensus(rng, form):
     n = 60
     pos = rng.random((2, n))
     band = BandMessages(g, 2.0 / H)
-    on_grid = DynamicAverageConsensus(g, H, rounds=2, form=form)
-    on_band = DynamicAverageConsensus(g, H, rounds=2, form=form, band=band)
+    on_grid = DynamicAverageConsensus(g, H, rounds=2, form=FORMS[form]())
+    on_band = DynamicAverageConsensus(g, H, rounds=2, form=FORMS[form](), messages=band)
     adj = communication_graph(pos, radius=0.25)
     w, _ = consensus_weights(adj)
     on_grid.initialize(pos, w)
@@ -242,7 +251,8 @@ def test_messages_and_bytes_per_design():
          3 * 2 + 2 * 2, (3 * 2 + 2 * 2) * 329 * 8, 329 * 8),
     ]  # fmt: skip
     for kwargs, messages, total, largest in cases:
-        est = RobotEstimators(g, 0.01, 10, H, settings, k_nearest=2, rounds=3, **kwargs)
+        est = RobotEstimators(g, 0.01, 10, H, settings, k_nearest=2, rounds=3,
+                              design=Design(**kwargs))  # fmt: skip
         counts = est.communication(adj)
         assert counts["messages"] == messages, kwargs
         assert counts["bytes"] == total, kwargs
@@ -259,3 +269,14 @@ def test_command_disagreement_on_known_velocities():
 
     assert command_disagreement(record(Command(None, robots, reference))) == pytest.approx(3.0)
     assert command_disagreement(record(Command(None, robots))) is None
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [("consensus", "second_order"), ("integral_gain", 1.0), ("share", "velocity"),
+     ("command_rounds", 0), ("messages", "wavelets"), ("band_limit", "inf")],
+)  # fmt: skip
+def test_a_design_value_not_allowed_is_refused_in_one_line_naming_its_key(refusal, key, value):
+    message = refusal(["estimator=distributed", *SMALL, f"estimator.{key}={value}"])
+    assert message is not None and message.startswith("invalid config:"), message
+    assert f"estimator.{key}" in message and "\n" not in message, message

@@ -7,11 +7,7 @@ from scipy.spatial.distance import cdist
 from harness.control.heat import HeatControl
 from harness.control.own_estimates import own_velocities, own_velocities_reference
 from harness.control.paper import PaperControl, paper_law
-from harness.estimators.distributed.consensus import (
-    DynamicAverageConsensus,
-    consensus_weights,
-    message_counts,
-)
+from harness.estimators.distributed.consensus import DynamicAverageConsensus, message_counts
 from harness.estimators.distributed.density import density_filter_reference
 from harness.estimators.distributed.estimator import RobotEstimators
 from harness.estimators.distributed.filters import RobotFilters
@@ -21,6 +17,7 @@ from harness.estimators.distributed.graph import (
     n_components,
 )
 from harness.estimators.distributed.metrics import central_gap_l2, consensus_l2, estimate_spread
+from harness.estimators.distributed.mixing import consensus_weights
 from harness.estimators.distributed.robot_kde import robot_kernels
 from harness.estimators.filters.common import FilterSettings, MeasurementModel
 from harness.estimators.filters.local import LocalFilters
@@ -499,7 +496,8 @@ def test_mixing_by_neighbour_sums_equals_the_sparse_product(rng, radius):
 @pytest.mark.parametrize(("shape", "h"), [((30, 30), 0.04), ((17, 11), 0.1), ((64, 64), 0.01)])
 def test_compiled_kernel_factors_equal_the_kde_kernel(rng, shape, h):
     """Products of exponentials (two per robot, axis and image) against
-    :func:`harness.estimators.kde.kernel_1d` (one exponential per value), robots on the walls too."""
+    :func:`harness.estimators.kde.kernel_1d` (one exponential per value), robots on the
+    walls too."""
     from harness.estimators.distributed.robot_kde import kernel_factors
     from harness.estimators.kde import kernel_1d
 

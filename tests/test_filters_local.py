@@ -6,10 +6,10 @@ from benchmarks.filter_accuracy import compare_filters
 from harness.estimators.filters.common import FilterSettings, Integrator, MeasurementModel
 from harness.estimators.filters.local import (
     LocalFilters,
-    WeightedPoisson,
     squared_transition,
     squared_transition_reference,
 )
+from harness.estimators.filters.poisson import WeightedPoisson
 from harness.estimators.filters.reference import ReferenceDensityFilter, ReferenceGradientFilter
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
@@ -322,7 +322,7 @@ def test_band_poisson_is_the_galerkin_solve_of_the_dense_operator(shape, rng):
     with the sparse gradient matrix, and the solve is that system's, on a rectangular
     grid with rough weights; for constant weights it is the grid solve projected."""
     from harness.estimators.filters.common import BandLimit
-    from harness.estimators.filters.local import BandPoisson
+    from harness.estimators.filters.poisson import BandPoisson
 
     nx, ny = shape
     g = Grid(nx, ny, 0.0, 1.0, 0.0, 0.8)
@@ -356,7 +356,7 @@ def test_band_gram_does_not_depend_on_thread_count(rng):
 
     from harness.compiled.filters import band_gram
     from harness.estimators.filters.common import BandLimit
-    from harness.estimators.filters.local import BandPoisson
+    from harness.estimators.filters.poisson import BandPoisson
 
     g = Grid.square(64)
     bp = BandPoisson(g, BandLimit(g, 2.5 / 0.04))

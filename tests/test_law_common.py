@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 
 from harness import api
 from harness.compiled.agents import speed_sums
-from harness.estimators.injected import InjectedEstimator
+from harness.estimators.injected import Hole, InjectedEstimator
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.observers.motion import speed_sums_reference
@@ -230,7 +230,8 @@ def test_hole_drives_the_estimate_towards_zero_on_its_region(target30):
     level = p * (1 - np.exp(-1 / 8)) + mean
     assert (p_hat[inside] <= level[inside] + 1e-12).all()
     assert (p_hat[inside] <= 0.2 * p[inside]).all()
-    mask, bound = est.hole_level(p)
+    assert isinstance(est.shape, Hole)
+    mask, bound = est.shape.level(p)
     np.testing.assert_array_equal(mask, inside)
     np.testing.assert_allclose(bound, level, rtol=1e-12)
     assert delta < 0.5 * grid.l2(p)  # small in L2 against the density itself

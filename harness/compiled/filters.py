@@ -1,9 +1,10 @@
 """Compiled loops of the fast density filters (:mod:`harness.estimators.filters.local`): the
 variance prediction (``(F1 o F1) d``, and ``diag(F1 S R S F1^T)`` with the band's
-correlations), the band Gram matrix of :class:`~harness.estimators.filters.local.BandPoisson`,
-and the small grids' gradient update (matrix-free ``G^T diag(c) G``, its pinned band
-assembled for the factor, banded Cholesky solves by columns, the conjugate-gradient
-iteration). Each has a numpy, sparse or LAPACK statement that tests compare against.
+correlations), the band Gram matrix of
+:class:`~harness.estimators.filters.poisson.BandPoisson`, and the small grids' gradient
+update (matrix-free ``G^T diag(c) G``, its pinned band assembled for the factor, banded
+Cholesky solves by columns, the conjugate-gradient iteration). Each has a numpy, sparse or
+LAPACK statement that tests compare against.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ def _band_gram(
     wy: np.ndarray,
     out: np.ndarray,
 ) -> None:  # pragma: no cover - compiled
-    """The Gram matrix of :class:`harness.estimators.filters.local.BandPoisson`, its upper
+    """The Gram matrix of :class:`harness.estimators.filters.poisson.BandPoisson`, its upper
     triangle ``out[i, j]``, ``j >= i`` (the strict lower triangle is not written), one
     row of pairs per (parallel) iteration, reading the extended transforms ``ex``,
     ``ey`` (``2 n_y x 2 n_x``) at the sum and difference frequencies:
@@ -33,7 +34,7 @@ def _band_gram(
 
     ``da = |a_i - a_j|``, ``sa = a_i + a_j`` (likewise ``b``). Each entry is computed
     on its own, so the result does not depend on the thread count. The numpy statement
-    is :meth:`~harness.estimators.filters.local.BandPoisson.gram_reference`.
+    is :meth:`~harness.estimators.filters.poisson.BandPoisson.gram_reference`.
     """
     k = a.size
     for i in numba.prange(k):
@@ -282,8 +283,8 @@ def weighted_poisson_pcg(
     :func:`band_rows` and diagonal reciprocals (:func:`_pinned_band_preconditioner`);
     returns ``(x, iterations, converged)``.
 
-    The iteration of :func:`harness.estimators.filters.local._pcg` (the reference, with a sparse
-    LU), statement for statement: converged when ``||r|| <= tol ||b||``, or, when the
+    The iteration of :func:`harness.estimators.filters.poisson._pcg` (the reference, with a
+    sparse LU), statement for statement: converged when ``||r|| <= tol ||b||``, or, when the
     iteration stops on ``r^T z <= 0`` or ``d^T A d <= 0``, when the residual off the
     constants is that small (the constants' part of ``b`` cannot be reduced).
     """

@@ -8,7 +8,7 @@ One module per option, named as the option, and the kernel they share:
   noise-free KDE ``K_h * p``, cell masses) and ``estimator=smoothed``;
 * :mod:`~harness.estimators.exact`: ``estimator=exact``, the mean-field density itself;
 * :mod:`~harness.estimators.injected`: ``estimator=injected``, the density plus a known
-  error (ISS gain curves);
+  error of one of two shapes (ISS gain curves);
 * :mod:`harness.estimators.filters`: ``estimator=filters``, the paper's two filters
   (config group ``filter`` for their settings);
 * :mod:`harness.estimators.distributed`: ``estimator=distributed``, one estimator per

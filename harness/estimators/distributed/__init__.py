@@ -11,8 +11,17 @@ own position, :func:`harness.control.own_estimates.own_velocities`; the robots' 
 * :mod:`~harness.estimators.distributed.graph`: the communication graph, its Laplacian and
   algebraic connectivity;
 * :mod:`~harness.estimators.distributed.robot_kde`: each robot's KDE kernel on the grid;
-* :mod:`~harness.estimators.distributed.consensus`: dynamic average consensus (derivation,
-  invariant, error bound, gain) and the messages it costs;
+* :mod:`~harness.estimators.distributed.mixing`: the consensus weights ``W = I - eps L``
+  (gain) and the product ``W z``;
+* :mod:`~harness.estimators.distributed.consensus`: dynamic average consensus in its two
+  forms (derivations, invariant, error bounds) and the messages it costs;
+* :mod:`~harness.estimators.distributed.messages` and
+  :mod:`~harness.estimators.distributed.band`: what a message carries, grid fields or the
+  band's coefficients;
+* :mod:`~harness.estimators.distributed.share`: what the robots share beyond their
+  kernels (the agreement on the law's input);
+* :mod:`~harness.estimators.distributed.design`: the design's parameters, and the tables
+  that map its config values to the classes above;
 * :mod:`~harness.estimators.distributed.filters`: the per-robot fast density filters, built from
   :mod:`~harness.estimators.distributed.density` (the density step, compiled over robots) and
   :mod:`~harness.estimators.distributed.row_solver` (one sparse LU over robots);

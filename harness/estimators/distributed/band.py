@@ -1,12 +1,13 @@
 """Band-limited messages: robots exchange the band's cosine coefficients, not grid fields.
 
-The filters estimate the band-limited density ``Pi p`` (:class:`harness.estimators.filters.common.BandLimit`:
-the Neumann cosine modes of wavenumber ``|kappa| <= kappa_c``, ``kappa_c =
-band_limit / h``), and above ``kappa_c`` the KDE carries neither signal nor noise. So a
-robot need not send its whole tracked field (``M`` cell values) to its neighbours: the
-``K`` band coefficients carry everything the filters use. With ``C_y``, ``C_x`` the
-orthonormal DCT-II matrices (rows up to the band's highest mode on each axis) and
-``mask`` the band's disc, the coefficients of a field ``F`` ``(n_y, n_x)`` are
+The filters estimate the band-limited density ``Pi p``
+(:class:`harness.estimators.filters.common.BandLimit`: the Neumann cosine modes of
+wavenumber ``|kappa| <= kappa_c``, ``kappa_c = band_limit / h``), and above ``kappa_c`` the
+KDE carries neither signal nor noise. So a robot need not send its whole tracked field
+(``M`` cell values) to its neighbours: the ``K`` band coefficients carry everything the
+filters use. With ``C_y``, ``C_x`` the orthonormal DCT-II matrices (rows up to the band's
+highest mode on each axis) and ``mask`` the band's disc, the coefficients of a field ``F``
+``(n_y, n_x)`` are
 
     c = mask o (C_y F C_x^T),       and    Pi F = C_y^T c C_x                    (BAND)
 
@@ -30,13 +31,19 @@ from functools import cached_property
 
 import numpy as np
 
+from harness.estimators.distributed.messages import KernelFactors
+from harness.estimators.distributed.mixing import Mixer
 from harness.estimators.filters.common import BandLimit
 from harness.grid import Grid
 
 
 class BandMessages:
     """The band's coefficients of the robots' kernels, and the fields they stand for
-    (eq. ``BAND`` in the module docstring).
+    (eq. ``BAND`` in the module docstring): the messages of ``estimator.messages: band``
+    (:class:`harness.estimators.distributed.messages.Messages`).
+
+    The kernels' change (:meth:`increment`) is the difference of their coefficients
+    from one step to the next; the last step's coefficients are kept for it.
 
     Args:
         grid: The grid.
@@ -51,6 +58,7 @@ class BandMessages:
         self.c_y, self.c_x = self.band.bases
         mask = self.band.mask[: self.c_y.shape[0], : self.c_x.shape[0]]
         self.rows, self.cols = np.nonzero(mask)
+        self._previous: np.ndarray | None = None  # the last increment's coefficients
 
     @property
     def size(self) -> int:
@@ -88,3 +96,30 @@ class BandMessages:
     def project(self, fields: np.ndarray) -> np.ndarray:
         """``Pi F_i`` of ``(N, M)`` fields (the coefficients and back)."""
         return self.fields(self.coefficients(fields))
+
+    def increment(self, factors: KernelFactors, old: KernelFactors | None) -> np.ndarray:
+        """The coefficients' change ``C_y ky_i (C_x kx_i)^T`` minus the last step's,
+        ``(N, K)`` (the coefficients themselves when ``old`` is None).
+        """
+        kx, _, ky, _ = factors
+        coef = self.kernels(kx, ky)
+        delta = coef if old is None or self._previous is None else coef - self._previous
+        self._previous = coef
+        return delta
+
+    def add_increment(
+        self, z: np.ndarray, factors: KernelFactors, old: KernelFactors | None
+    ) -> None:
+        """``z += increment(factors, old)`` in place (:meth:`increment`)."""
+        z += self.increment(factors, old)
+
+    def mixed(self, fields: np.ndarray, mix: Mixer, rounds: int) -> np.ndarray:
+        """``rounds`` rounds of ``mix`` on the band's coefficients ``c`` of ``(N, M)``
+        fields ``F``; each robot keeps its own part outside the band: ``F - Pi F`` plus
+        the fields of ``W^rounds c`` (eq. ``BAND``).
+        """
+        coef = self.coefficients(fields)
+        outside = fields - self.fields(coef)
+        for _ in range(rounds):
+            coef = mix(coef)
+        return outside + self.fields(coef)

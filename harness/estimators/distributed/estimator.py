@@ -14,21 +14,17 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from harness.estimators.distributed.band import BandMessages
-from harness.estimators.distributed.consensus import (
-    FORMS,
-    DynamicAverageConsensus,
-    consensus_weights,
-    message_counts,
-)
+from harness.estimators.distributed.consensus import DynamicAverageConsensus, message_counts
+from harness.estimators.distributed.design import Design
 from harness.estimators.distributed.filters import RobotFilters
 from harness.estimators.distributed.graph import algebraic_connectivity, communication_graph
 from harness.estimators.distributed.metrics import FIELD_NAMES, network_figures
+from harness.estimators.distributed.mixing import Mixer, consensus_weights
 from harness.estimators.filters.common import FilterSettings, MeasurementModel
 from harness.estimators.filters.engines import LocalEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid, grid_gradient
-from harness.parameters import Incompatible, flag, integer, number, require
+from harness.parameters import Incompatible, ParameterError, flag, integer, number, require
 from harness.protocols import (
     Control,
     MemoryEstimate,
@@ -57,14 +53,6 @@ class DistributedEstimate:
     eps: float
 
 
-SHARES = ("density", "command")
-"""What the robots agree on (:class:`RobotEstimators`)."""
-
-
-MESSAGES = ("grid", "band")
-"""What a message carries: grid fields or the band's coefficients."""
-
-
 GRADIENTS = {"grid": 2, "fourth_order": 4}
 """The option ``gradient``: the order of the central differences each robot takes of its
 own density estimate (:func:`harness.grid.grid_gradient`)."""
@@ -75,26 +63,12 @@ class RobotEstimators:
     law's input).
 
     Per step: the communication graph at the robots' positions; ``rounds`` rounds of
-    dynamic average consensus (first-order or PI, on grid fields or band coefficients,
+    dynamic average consensus (in the design's form, on what its messages carry,
     :class:`~harness.estimators.distributed.consensus.DynamicAverageConsensus`); every robot's
-    filter on what it tracks. With ``share="command"`` the robots then agree on what the
-    law reads: ``command_rounds`` rounds of static average consensus on their filtered
-    estimates, started each step from each robot's own,
-
-        p_bar(0) = p_hat,     p_bar(k + 1) = W p_bar(k),     k < m_c,             (AGREE)
-
-    on the band's coefficients with ``messages="band"`` (each robot keeps its own part
-    outside the band, which the law's smoothing of the KDE barely carries). The filters
-    keep their own states; only the law's input is agreed. For a law affine in ``(p_hat,
-    q_hat)`` with the grid gradient, such as the paper's (eq. ``modified density
-    feedback law using estimates``: ``v = -alpha grad(p_hat / p_*) + sigma grad log
-    p_*``), the law of the agreed estimate is the agreed command field: ``W`` has rows
-    summing to one, so ``sum_j W_ij law(p_hat_j) = law(sum_j W_ij p_hat_j)``; robots
-    thus agree on the law's output without differentiating their disagreement again.
-    *Error.* With ``e_i`` the robots' disagreement after the filters, ``Pi e`` the part
-    off the mean, the agreed estimates' disagreement is ``W^{m_c} Pi e``, smaller by
-    ``rho^{m_c}`` (``rho`` of :mod:`~harness.estimators.distributed.consensus`), and the law's ISS
-    gain w.r.t. estimation errors applies to it as to any estimation error.
+    filter on what it tracks; then what the robots share of the law's input
+    (:mod:`~harness.estimators.distributed.share`: each robot's own estimate, or with
+    ``share: command`` the agreed one of eq. ``AGREE``,
+    :class:`~harness.estimators.distributed.share.ShareCommand`).
 
     Args:
         grid: The grid.
@@ -109,13 +83,9 @@ class RobotEstimators:
         gain: Consensus gain factor in ``(0, 1]``.
         initial_rounds: Consensus rounds at ``t = 0`` before the first estimate
             (default ``rounds``; see :class:`DynamicAverageConsensus`).
-        consensus: ``"first_order"`` or ``"pi"``.
-        integral_gain: ``k_I`` of the PI form.
-        share: ``"density"`` or ``"command"`` (eq. ``AGREE``).
-        messages: ``"grid"`` or ``"band"``.
-        band_limit: ``kappa_c h`` of the band messages (finite).
-        command_rounds: ``m_c``, rounds of eq. ``AGREE`` per step with
-            ``share="command"``.
+        design: The consensus form, what the robots share, what a message carries
+            (:class:`~harness.estimators.distributed.design.Design`; default the
+            first-order form, the density, grid fields).
     """
 
     def __init__(
@@ -130,24 +100,18 @@ class RobotEstimators:
         rounds: int = 1,
         gain: float = 1.0,
         initial_rounds: int | None = None,
-        consensus: str = "first_order",
-        integral_gain: float = 0.5,
-        share: str = "density",
-        messages: str = "grid",
-        band_limit: float = 2.5,
-        command_rounds: int = 1,
+        design: Design | None = None,
     ) -> None:
         if radius is None and k_nearest is None:
             raise ValueError("give radius, k_nearest or both")
-        if share not in SHARES or messages not in MESSAGES:
-            raise ValueError(f"share must be one of {SHARES} and messages one of {MESSAGES}")
+        design = Design() if design is None else design
         self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
-        self.share, self.command_rounds = share, int(command_rounds)
+        self.share = design.sharing()
         self.filters = RobotFilters(grid, dt, MeasurementModel(n_robots, bandwidth, settings))
-        self.band = BandMessages(grid, band_limit / bandwidth) if messages == "band" else None
+        self.messages = design.carrier(grid, bandwidth)
         self.consensus = DynamicAverageConsensus(
             grid, bandwidth, rounds=rounds, gain=gain, initial_rounds=initial_rounds,
-            form=consensus, integral_gain=integral_gain, band=self.band,
+            form=design.form(), messages=self.messages,
         )  # fmt: skip
         self.adjacency: sp.csr_matrix | None = None
         self._w: sp.csr_matrix | None = None
@@ -159,25 +123,17 @@ class RobotEstimators:
         self._w, self._positions = w, positions
         return w
 
-    def agree(self, p_hat: np.ndarray) -> np.ndarray:
-        """Eq. ``AGREE``: ``command_rounds`` rounds of ``W`` on the robots' estimates (on
-        the band's coefficients with band messages); ``p_hat`` itself with
-        ``share="density"``.
-        """
-        if self.share != "command":
-            return p_hat
+    def _mixer(self) -> Mixer:
+        """``x -> W x`` of the step's graph."""
         assert self._w is not None and self._positions is not None
-        mix = self.consensus._mixer(self._w, self._positions)
-        if self.band is None:
-            out = p_hat
-            for _ in range(self.command_rounds):
-                out = mix(out)
-            return out
-        coef = self.band.coefficients(p_hat)
-        outside = p_hat - self.band.fields(coef)
-        for _ in range(self.command_rounds):
-            coef = mix(coef)
-        return outside + self.band.fields(coef)
+        return self.consensus.mixer(self._w, self._positions)
+
+    def agree(self, p_hat: np.ndarray) -> np.ndarray:
+        """The law's input from the robots' filtered estimates: ``p_hat`` itself, or eq.
+        ``AGREE`` with ``share: command``
+        (:meth:`~harness.estimators.distributed.share.Share.agree`).
+        """
+        return self.share.agree(p_hat, self._mixer, self.messages)
 
     def _estimate(self, y: np.ndarray) -> DistributedEstimate:
         f = self.filters
@@ -200,25 +156,19 @@ class RobotEstimators:
 
     def communication(self, adj: sp.csr_matrix) -> dict[str, float]:
         """Per robot per step (means over robots): ``messages``, ``bytes`` (consensus
-        and, with ``share="command"``, eq. ``AGREE``), ``message_bytes`` (the largest
+        and, with ``share: command``, eq. ``AGREE``), ``message_bytes`` (the largest
         message, bytes) and ``mean_degree``.
         """
         c = self.consensus
         counts = message_counts(adj, c.rounds, c.floats_per_round, c.exchanges)
-        largest = c.message_bytes
-        if self.share == "command":
-            per = self.band.size if self.band is not None else self.grid.size
-            agree = message_counts(adj, self.command_rounds, per)
-            counts["messages"] += agree["messages"]
-            counts["bytes"] += agree["bytes"]
-            largest = max(largest, 8 * per)
-        counts["message_bytes"] = float(largest)
+        counts["message_bytes"] = float(c.message_bytes)
+        self.share.count(counts, adj, self.messages)
         return counts
 
     def memory_bytes(self) -> int:
         """Bytes held in per-robot arrays (consensus states and buffer, filter states)."""
         c = self.consensus
-        arrays = [c.z, c.w, c._buf, self.filters.x, self.filters.d]
+        arrays = [c.z, c.w, c.buffer, self.filters.x, self.filters.d]
         arrays += list(c._factors or ())
         return int(sum(a.nbytes for a in arrays if a is not None))
 
@@ -287,7 +237,7 @@ class DistributedEstimator:
         integral_gain: ``k_I`` of ``pi`` in ``(0, 1)`` (``k_P = 1 - k_I^2``).
         share: ``density`` (consensus on the kernels only) or ``command`` (then
             ``command_rounds`` rounds of agreement on the law's input, eq. ``AGREE`` of
-            :class:`RobotEstimators`).
+            :class:`~harness.estimators.distributed.share.ShareCommand`).
         messages: ``grid`` (fields of ``M`` cells) or ``band`` (the band's ``K`` cosine
             coefficients, :mod:`~harness.estimators.distributed.band`; the reference then observes
             the band-limited KDE, which is what the robots can agree on).
@@ -295,9 +245,10 @@ class DistributedEstimator:
             grid and ``h``, 2632 bytes a message; 2.0 keeps 214 modes, 1712 bytes).
         command_rounds: Rounds of eq. ``AGREE`` per step (``>= 1``).
 
-    The designs ``conf/design/*.yaml`` set ``consensus``, ``share`` and ``messages``
-    together (``+design=command_band``); the metrics ``messages``, ``bytes`` and
-    ``message_bytes`` count what each design sends
+    The last six make the design (:class:`~harness.estimators.distributed.design.Design`,
+    which checks them and maps each choice to its class); the designs ``conf/design/*.yaml``
+    set ``consensus``, ``share`` and ``messages`` together (``+design=command_band``); the
+    metrics ``messages``, ``bytes`` and ``message_bytes`` count what each design sends
     (:meth:`RobotEstimators.communication`).
     """
 
@@ -323,12 +274,12 @@ class DistributedEstimator:
         initial_rounds: int = 30,
         robot: int = 0,
         connectivity_every: int = 100,
-        consensus: str = "first_order",
-        integral_gain: float = 0.5,
-        share: str = "density",
-        messages: str = "grid",
-        band_limit: float = 2.5,
-        command_rounds: int = 1,
+        consensus: str = Design.consensus,
+        integral_gain: float = Design.integral_gain,
+        share: str = Design.share,
+        messages: str = Design.messages,
+        band_limit: float = Design.band_limit,
+        command_rounds: int = Design.command_rounds,
     ) -> None:
         self.grid = grid
         self.n_robots = integer("robots", robots, 1)
@@ -352,23 +303,16 @@ class DistributedEstimator:
         require(known, "gradient", gradient, f"one of {', '.join(GRADIENTS)}")
         self.order = GRADIENTS[gradient]
         initial_rounds = integer("initial_rounds", initial_rounds, 0)
-        for key, value, options in (("consensus", consensus, FORMS), ("share", share, SHARES),
-                                    ("messages", messages, MESSAGES)):  # fmt: skip
-            known = isinstance(value, str) and value in options
-            require(known, key, value, f"one of {', '.join(options)}")
-        integral_gain = number("integral_gain", integral_gain, 0.0, strict=True)
-        require(integral_gain < 1.0, "integral_gain", integral_gain, "a number in (0, 1)")
-        band_limit = number("band_limit", band_limit, 0.0, strict=True)
-        require(bool(np.isfinite(band_limit)), "band_limit", band_limit, "a finite number > 0")
-        command_rounds = integer("command_rounds", command_rounds, 1)
+        design = Design(
+            consensus=consensus, integral_gain=integral_gain, share=share,
+            command_rounds=command_rounds, messages=messages, band_limit=band_limit,
+        )  # fmt: skip
         self.robot = integer("robot", robot, 0)
         require(self.robot < self.n_robots, "robot", robot, f"an index below robots = {robots}")
         self.connectivity_every = integer("connectivity_every", connectivity_every, 1)
         self.network = RobotEstimators(
             grid, dt, self.n_robots, h, settings, radius=radius, k_nearest=k_nearest,
-            rounds=rounds, gain=gain, initial_rounds=initial_rounds,
-            consensus=consensus, integral_gain=integral_gain, share=share,
-            messages=messages, band_limit=band_limit, command_rounds=command_rounds,
+            rounds=rounds, gain=gain, initial_rounds=initial_rounds, design=design,
         )  # fmt: skip
         measurement = MeasurementModel(self.n_robots, h, settings)
         self.central = LocalEngine(grid, model.sigma, dt, measurement)
@@ -394,9 +338,11 @@ class DistributedEstimator:
         --app`` checks every design against it).
         """
         n = robots if isinstance(robots, int) and robots > 0 else 1
-        fields = 11
-        fields += 6 if params.get("consensus") == "pi" else 0
-        fields += 2 if params.get("share") == "command" else 0
+        try:
+            design = Design.of(params)
+        except ParameterError:  # refused when the estimator is built
+            design = Design()
+        fields = 11 + design.form().memory_fields + design.sharing().memory_fields
         per_robot = 8 * fields * grid.size + 8 * (grid.nx + grid.ny) * 4
         radius, k = params.get("radius"), params.get("k_nearest")
         degree = float(n - 1)
@@ -471,9 +417,7 @@ class DistributedEstimator:
         estimate neither the robots nor the metrics use, sees the whole gradient).
         """
         p, grad = self.network.consensus.kde()
-        band = self.network.band
-        if band is not None:
-            p = band.project(p.reshape(1, -1)).reshape(p.shape)
+        p = self.network.messages.project(p.reshape(1, -1)).reshape(p.shape)
         return p, grad
 
     def step(self, inp: StepInput) -> Estimate:

@@ -99,7 +99,8 @@ def network_figures(
         p_central: The centralised reference's estimate.
         adjacency: The step's communication graph.
         counts: ``messages``, ``bytes``, ``message_bytes`` and ``mean_degree`` per robot
-            per step (:meth:`harness.estimators.distributed.estimator.RobotEstimators.communication`).
+            per step
+            (:meth:`harness.estimators.distributed.estimator.RobotEstimators.communication`).
         connectivity: The graph's algebraic connectivity (evaluated by the caller, who
             may hold it between evaluations).
 
