@@ -27,9 +27,10 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 
+from analysis.declaration import Study
 from analysis.load import load_run
 from analysis.plotting import save_figure
-from analysis.sweep import points, value
+from analysis.rows import points, value
 
 MESSAGES_BUDGET = 100.0
 """Messages per robot per step the goal allows."""
@@ -42,6 +43,9 @@ GOAL_RATIO = 1.2
 
 DESIGN_KEYS = ("estimator.consensus", "estimator.share", "estimator.messages")
 """The keys a design sets."""
+
+FRONTIER_KEYS = (*DESIGN_KEYS, "estimator.radius", "estimator.rounds")
+"""The keys the ``distributed_frontier`` figure draws against."""
 
 
 def design_name(point: dict[str, Any]) -> str:
@@ -185,21 +189,21 @@ def frontier_figure(table: list[dict[str, Any]], central: float, out: Path) -> l
     return save_figure(fig, out, "distributed_frontier")
 
 
-def draw_frontier(study: Any) -> list[Path]:
+def draw_frontier(study: Study) -> list[Path]:
     """The study's figure (:data:`analysis.sweep.FIGURES`), and one line per point."""
     sweep_dir = study.sweep_dir
     central = centralised_swarm(sweep_dir, study.tail) if sweep_dir is not None else math.nan
-    if not math.isfinite(central):
+    if sweep_dir is None or not math.isfinite(central):
+        where = Path("SWEEP_DIR") if sweep_dir is None else sweep_dir
         raise SystemExit(
-            f"error: no centralised run at {sweep_dir}_centralised/run.mcap nor "
-            f"{sweep_dir.parent}/distributed_frontier_centralised/run.mcap: run "
+            f"error: no centralised run at {where}_centralised/run.mcap nor "
+            f"{where.parent}/distributed_frontier_centralised/run.mcap: run "
             "python -m experiments.closed_loop +experiment=distributed_frontier_centralised"
         )
     table = frontier_rows(study.usable, central)
     print(f"centralised loop: swarm_l2 tail mean {central:.4g} 1/length")
-    assert sweep_dir is not None
     for row in study.usable:
-        k = row.get("cfg:estimator.k_nearest")
+        k = value(row, "estimator.k_nearest")
         if k not in (None, "", "None"):
             reach = knn_reach(sweep_dir / row["dir"] / "run.mcap", int(float(k)))
             print(

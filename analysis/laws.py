@@ -13,8 +13,9 @@
 * ``laws_noise`` (``law``, ``agents.localisation_noise``; ``laws_noise.png/.pdf``): the tail
   mean of ``swarm_l2`` over its floor against the localisation noise, per law.
 
-Law names: each law's config option where the class is one of this project's
-(:data:`LAW_NAMES`), else the class name.
+Each law is shown under its option name (the ``law`` column, :mod:`analysis.rows`; a
+log written before logs recorded Hydra's choices gives the class name instead), the laws
+in alphabetical order (:func:`by_law`), the order in which ``control=glob(*)`` runs them.
 """
 
 from __future__ import annotations
@@ -29,48 +30,27 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from analysis import sweep
+from analysis.declaration import Study
 from analysis.output import write_text
-from analysis.plotting import save_figure
-
-LAW_NAMES = {
-    "PaperControl": "paper",
-    "HeatControl": "heat",
-    "LangevinControl": "langevin",
-    "MMDControl": "mmd",
-    "SVGDControl": "svgd",
-    "MetropolisGuidance": "psg",
-    "FeedbackGuidance": "psg_feedback",
-    "AssignmentControl": "ot",
-}
-"""The config option of each law class (``control=<option>``)."""
-
-LAW_ORDER = ("paper", "heat", "langevin", "mmd", "svgd", "psg", "psg_feedback", "ot")
-"""The order of the laws in figures and tables."""
+from analysis.plotting import errorbar, save_figure
+from analysis.rows import LAW, points_with, value
 
 
-def law_name(row: dict[str, Any]) -> str:
-    """The law's option name (:data:`LAW_NAMES`), else its class name."""
-    law = str(row.get("law", ""))
-    return LAW_NAMES.get(law, law)
-
-
-def _order(name: str) -> tuple[int, str]:
-    return (LAW_ORDER.index(name) if name in LAW_ORDER else len(LAW_ORDER), name)
-
-
-def _by_law(agg: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+def by_law(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
+    """The rows (or points) grouped by their law (:data:`analysis.rows.LAW`), the laws
+    in alphabetical order.
+    """
     groups: dict[str, list[dict[str, Any]]] = {}
-    for a in agg:
-        groups.setdefault(law_name(a), []).append(a)
-    return dict(sorted(groups.items(), key=lambda kv: _order(kv[0])))
+    for a in rows:
+        groups.setdefault(str(a.get(LAW, "")), []).append(a)
+    return dict(sorted(groups.items()))
 
 
 def laws_n_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     """Per law against N: the swarm metrics over their floors, effort, tail speed,
     settling time and steps per second (means over the seeds, 95 % CIs).
     """
-    agg = sweep.points(rows)
+    agg = points_with(rows, ("agents.n",))
     panels = (
         ("swarm_ratio", r"tail $\mathrm{swarm\_l2}$ / floor", "log"),
         ("swarm_w2_ratio", r"tail $\mathrm{swarm\_w2}$ / floor", "log"),
@@ -80,12 +60,12 @@ def laws_n_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
         ("ms_per_step", "wall time per step (ms, with metrics and log)", "log"),
     )
     fig, axes = plt.subplots(2, 3, figsize=(15, 8.5), constrained_layout=True)
-    for i, (law, group) in enumerate(_by_law(agg).items()):
+    for i, (law, group) in enumerate(by_law(agg).items()):
         group.sort(key=lambda a: a["agents.n"])
         n = np.array([a["agents.n"] for a in group], dtype=float)
         for ax, (stat, _, _) in zip(axes.flat, panels, strict=True):
             if np.isfinite([a[f"{stat}_mean"] for a in group]).any():
-                sweep._errorbar(ax, n, group, stat, label=law, color=f"C{i}")
+                errorbar(ax, n, group, stat, label=law, color=f"C{i}")
     for ax, (_, label, scale) in zip(axes.flat, panels, strict=True):
         ax.set_xscale("log")
         ax.set_yscale(scale)
@@ -99,8 +79,11 @@ def laws_n_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     return save_figure(fig, out, "laws_n")
 
 
-def _cell(a: dict[str, Any] | None, stat: str, fmt: str = "{:.3g}") -> str:
-    """``mean (low to high)`` of a point's statistic, or an em dash."""
+def cell(a: dict[str, Any] | None, stat: str, fmt: str = "{:.3g}") -> str:
+    """A table cell: ``mean (low to high)`` of a point's statistic (its mean over the
+    seeds and 95 % interval), ``never`` for a settling time no seed reached, ``-`` for
+    no value; a settling time reached by some seeds says how many.
+    """
     if a is None:
         return "-"
     mean = a.get(f"{stat}_mean", math.nan)
@@ -124,11 +107,12 @@ def laws_table(rows: list[dict[str, Any]], sizes: tuple[int, int] = (1024, 16384
     mean speed (length / s), the settling time (s) and the steps per second of the
     sweep's runs (with metrics and log). Means over the seeds, 95 % CIs in brackets.
     """
-    agg = sweep.points(rows)
+    agg = points_with(rows, ("agents.n",))
     facts: dict[str, tuple[str, str]] = {}
     for r in rows:
         facts.setdefault(
-            law_name(r), (r.get("law_uses", "") or "-", r.get("law_divides_by_density", "") or "-")
+            str(r.get(LAW, "")),
+            (r.get("law_uses", "") or "-", r.get("law_divides_by_density", "") or "-"),
         )
     small, large = sizes
     head = (
@@ -137,7 +121,7 @@ def laws_table(rows: list[dict[str, Any]], sizes: tuple[int, int] = (1024, 16384
         f"tail speed (length/s) | settling time (s) | steps/s |"
     )
     lines = [head, "|" + "---|" * 10]
-    for law, group in _by_law(agg).items():
+    for law, group in by_law(agg).items():
         at = {int(a["agents.n"]): a for a in group}
         a, b = at.get(small), at.get(large)
         steps = "-"
@@ -145,15 +129,15 @@ def laws_table(rows: list[dict[str, Any]], sizes: tuple[int, int] = (1024, 16384
             steps = f"{1e3 / a['ms_per_step_mean']:.0f}"
         uses, divides = facts.get(law, ("-", "-"))
         lines.append(
-            f"| {law} | {uses} | {divides} | {_cell(a, 'swarm_ratio')} | "
-            f"{_cell(b, 'swarm_ratio')} | {_cell(a, 'swarm_w2_ratio')} | "
-            f"{_cell(a, 'effort_integral')} | {_cell(a, 'speed_tail_mean')} | "
-            f"{_cell(a, 'settling_time', '{:.1f}')} | {steps} |"
+            f"| {law} | {uses} | {divides} | {cell(a, 'swarm_ratio')} | "
+            f"{cell(b, 'swarm_ratio')} | {cell(a, 'swarm_w2_ratio')} | "
+            f"{cell(a, 'effort_integral')} | {cell(a, 'speed_tail_mean')} | "
+            f"{cell(a, 'settling_time', '{:.1f}')} | {steps} |"
         )
     return "\n".join(lines) + "\n"
 
 
-def draw_laws_n(study: sweep.Study) -> list[Path]:
+def draw_laws_n(study: Study) -> list[Path]:
     """:func:`laws_n_figure` and :func:`laws_table` (printed and written)."""
     paths = laws_n_figure(study.usable, study.out)
     table = laws_table(study.usable)
@@ -180,7 +164,7 @@ def _iss_panel(ax, groups: dict[str, list[dict[str, Any]]], gains: dict[str, flo
     dashed, the same law without error.
     """
     for i, (name, group) in enumerate(groups.items()):
-        group.sort(key=lambda r: float(sweep.value(r, "estimator.delta") or 0))
+        group.sort(key=lambda r: float(value(r, "estimator.delta") or 0))
         x = np.array([r["eps_sup"] for r in group], dtype=float)
         y = np.array([r["phi_sup"] for r in group], dtype=float)
         pos = x > 1e-12
@@ -197,7 +181,7 @@ def _iss_panel(ax, groups: dict[str, list[dict[str, Any]]], gains: dict[str, flo
 
 
 def _shapes(rows: list[dict[str, Any]]) -> list[str]:
-    return sorted({str(sweep.value(r, "estimator.shape")) for r in rows})
+    return sorted({str(value(r, "estimator.shape")) for r in rows})
 
 
 def laws_iss_figure(rows: list[dict[str, Any]], out: Path) -> tuple[list[Path], dict]:
@@ -208,10 +192,10 @@ def laws_iss_figure(rows: list[dict[str, Any]], out: Path) -> tuple[list[Path], 
     for ax, shape in zip(axes[0], shapes, strict=True):
         groups: dict[str, list[dict[str, Any]]] = {}
         for r in rows:
-            if str(sweep.value(r, "estimator.shape")) == shape:
-                groups.setdefault(law_name(r), []).append(r)
+            if str(value(r, "estimator.shape")) == shape:
+                groups.setdefault(str(r.get(LAW, "")), []).append(r)
         gains[shape] = {}
-        _iss_panel(ax, dict(sorted(groups.items(), key=lambda kv: _order(kv[0]))), gains[shape])
+        _iss_panel(ax, dict(sorted(groups.items())), gains[shape])
         ax.set_title(f"injected error: {shape}")
     fig.suptitle("Mean-field plant, injected estimation errors, start at $p_*$")
     fig.set_layout_engine("constrained")
@@ -230,8 +214,8 @@ def heat_floor_figure(rows: list[dict[str, Any]], out: Path) -> tuple[list[Path]
     for ax, shape in zip(axes[0], shapes, strict=False):
         groups: dict[str, list[dict[str, Any]]] = {}
         for r in rows:
-            if str(sweep.value(r, "estimator.shape")) == shape:
-                c = float(sweep.value(r, "control.density_floor"))
+            if str(value(r, "estimator.shape")) == shape:
+                c = float(value(r, "control.density_floor"))
                 groups.setdefault(f"c = {c:g}", []).append(r)
         gains[shape] = {}
         ordered = dict(sorted(groups.items(), key=lambda kv: -float(kv[0][4:])))
@@ -254,12 +238,12 @@ def heat_floor_figure(rows: list[dict[str, Any]], out: Path) -> tuple[list[Path]
 
 def laws_noise_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     """Tail ``swarm_l2`` over its floor against the localisation noise, per law."""
-    agg = sweep.points(rows)
+    agg = points_with(rows, ("agents.localisation_noise",))
     fig, ax = plt.subplots(figsize=(7, 4.8), constrained_layout=True)
-    for i, (law, group) in enumerate(_by_law(agg).items()):
+    for i, (law, group) in enumerate(by_law(agg).items()):
         group.sort(key=lambda a: a["agents.localisation_noise"])
         s = np.array([a["agents.localisation_noise"] for a in group], dtype=float)
-        sweep._errorbar(ax, s, group, "swarm_ratio", label=law, color=f"C{i}")
+        errorbar(ax, s, group, "swarm_ratio", label=law, color=f"C{i}")
     ax.set_yscale("log")
     ax.set_xlabel("localisation noise (length, standard deviation)")
     ax.set_ylabel(r"tail $\mathrm{swarm\_l2}$ / floor")
@@ -276,29 +260,29 @@ def _print_gains(gains: dict[str, dict[str, float]]) -> None:
             print(f"fitted ISS gain ({shape}, {name}): {g:.4g} (sup ||Phi|| per unit sup ||eps||)")
 
 
-def draw_laws_iss(study: sweep.Study) -> list[Path]:
+def draw_laws_iss(study: Study) -> list[Path]:
     """:func:`laws_iss_figure`, and each law's gain per shape."""
     paths, gains = laws_iss_figure(study.usable, study.out)
     _print_gains(gains)
     return paths
 
 
-def draw_heat_floor(study: sweep.Study) -> list[Path]:
+def draw_heat_floor(study: Study) -> list[Path]:
     """:func:`heat_floor_figure`, and each floor's gain per shape."""
     paths, gains = heat_floor_figure(study.usable, study.out)
     _print_gains(gains)
     return paths
 
 
-def draw_laws_noise(study: sweep.Study) -> list[Path]:
+def draw_laws_noise(study: Study) -> list[Path]:
     """:func:`laws_noise_figure`, and each law's ratio at each noise."""
     paths = laws_noise_figure(study.usable, study.out)
     for a in sorted(
-        sweep.points(study.usable),
-        key=lambda a: (_order(law_name(a)), a["agents.localisation_noise"]),
+        points_with(study.usable, ("agents.localisation_noise",)),
+        key=lambda a: (str(a[LAW]), a["agents.localisation_noise"]),
     ):
         print(
-            f"{law_name(a)}, localisation noise {a['agents.localisation_noise']}: "
-            f"swarm_l2 / floor = {_cell(a, 'swarm_ratio')}"
+            f"{a[LAW]}, localisation noise {a['agents.localisation_noise']}: "
+            f"swarm_l2 / floor = {cell(a, 'swarm_ratio')}"
         )
     return paths

@@ -3,7 +3,8 @@
 ``load_run(path)`` returns a :class:`RunLog`: the metrics as one array per key,
 each field topic as a :class:`FieldSeries` (times and values), the robot positions
 (and, for robots with a heading, their poses ``(N, 3)``: x, y in length, heading in
-rad), and the metadata records (``config``, ``provenance``, ``status``). Topic names and
+rad), and the metadata records (``config``, ``choices``, ``provenance``, ``status``);
+:attr:`RunLog.choices` is the option the run took in each config group. Topic names and
 units are those of the log contract in ``harness/observers/log.py``.
 
 The same run as xarray objects (built from the numpy arrays, so the values are the
@@ -40,7 +41,8 @@ from analysis.output import atomic_path
 if TYPE_CHECKING:
     import xarray as xr
 
-# units of the field topics (log contract, harness/observers/log.py) and of the metrics (docs/units.md)
+# units of the field topics (log contract, harness/observers/log.py) and of the metrics
+# (docs/units.md)
 FIELD_UNITS = {
     "/fields/p_target": "1/length^2",
     "/fields/p_true": "1/length^2",
@@ -128,6 +130,22 @@ class RunLog:
     foreign: str | None = None
     poses_t: np.ndarray = field(default_factory=lambda: np.zeros(0))
     poses: list[np.ndarray] = field(default_factory=list, repr=False)
+
+    @property
+    def choices(self) -> dict[str, str]:
+        """Hydra's choices: the option taken in each config group (``{"control":
+        "paper", "plant": "agents", "experiment": "smoke", ...}``; group names as Hydra
+        spells them, ``null`` for a group set to nothing), from the ``choices`` record.
+        Empty for a log written before the record existed (see :attr:`has_choices`).
+        """
+        return {str(k): str(v) for k, v in self.metadata.get("choices", {}).items()}
+
+    @property
+    def has_choices(self) -> bool:
+        """Whether the log holds a ``choices`` record (a log written before the record
+        existed has none; one whose config was made without Hydra has an empty one).
+        """
+        return "choices" in self.metadata
 
     @property
     def state(self) -> str:

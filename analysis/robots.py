@@ -1,10 +1,12 @@
 """Figures of the robot and link studies (``analysis.figure: robots | link``), drawn
 from a sweep's rows by :mod:`analysis.sweep`.
 
-* ``robots`` (``robots.png/.pdf``): per law, one bar per plant (ideal integrators,
-  unicycles, double integrators): the tail ``swarm_l2`` over its finite-N floor, the
-  tail mean tracking error (length / s) and the settling time (s), means over the seeds
-  with 95 % confidence intervals; a table ``robots_table.md`` with the same numbers.
+* ``robots`` (``plant``, ``law``; ``robots.png/.pdf``): per law, one bar per plant
+  (in alphabetical order of the plants' options: ideal integrators ``agents``, double
+  integrators, unicycles, and any plant of your own under its option name): the tail
+  ``swarm_l2`` over its finite-N floor, the tail mean tracking error (length / s) and
+  the settling time (s), means over the seeds with 95 % confidence intervals; a table
+  ``robots_table.md`` with the same numbers.
 * ``link`` (``link.png/.pdf``): per loss probability, the tail ``swarm_l2`` over its
   floor on the grid of broadcast period against latency (colour, log scale, value in
   each cell), the cells within :data:`REACHES` times the floor outlined; the boundary
@@ -21,56 +23,47 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import LogNorm
 
-from analysis import sweep
-from analysis.laws import _by_law, _cell
+from analysis.declaration import Study
+from analysis.laws import by_law, cell
 from analysis.output import write_text
 from analysis.plotting import save_figure
+from analysis.rows import points_with
 
-PLANT_NAMES = {
-    "harness.plants.agents.Agents": "ideal integrators",
-    "harness.plants.unicycles.Unicycles": "unicycles",
-    "harness.plants.double_integrators.DoubleIntegrators": "double integrators",
-    "harness.plants.Agents": "ideal integrators",
-    "harness.plants.Unicycles": "unicycles",
-    "harness.plants.DoubleIntegrators": "double integrators",
-}
-"""The figure's name of each plant class (``plant._target_``)."""
+PLANT = "plant"
+"""The key of the plant: the option of config group ``plant`` (:mod:`analysis.rows`)."""
+
+PLANT_LABELS = {"agents": "ideal integrators", "double_integrators": "double integrators"}
+"""How the figure and table name the project's plants whose option name does not read
+as words; any other plant is shown under its option name."""
 
 REACHES = 1.5
 """A loop reaches its floor when its tail ``swarm_l2`` is at most this many times the
-floor's mean (the settling criterion of :data:`analysis.sweep.SETTLING_FACTOR`)."""
-
-
-def _points(rows: list[dict[str, Any]], keys: tuple[str, ...]) -> list[dict[str, Any]]:
-    """:func:`analysis.sweep.points`, each point holding every key of ``keys`` (a key
-    that does not vary across the sweep is not among the points' own: its single value
-    is copied in from the rows).
-    """
-    agg = sweep.points(rows)
-    for key in keys:
-        fixed = next((sweep.value(r, key) for r in rows if sweep.value(r, key) is not None), None)
-        for a in agg:
-            a.setdefault(key, fixed)
-    return agg
-
+floor's mean (the settling criterion of :data:`analysis.run_stats.SETTLING_FACTOR`)."""
 
 LINK_KEYS = ("link.period", "link.latency", "link.loss")
 """The link study's axes."""
 
 
-def _plant(a: dict[str, Any]) -> str:
-    name = str(a.get("plant._target_", ""))
-    return PLANT_NAMES.get(name, name.rsplit(".", 1)[-1])
+def plant_label(a: dict[str, Any]) -> str:
+    """The point's plant as the figure and table name it (:data:`PLANT_LABELS`, else its
+    option name).
+    """
+    option = str(a.get(PLANT, ""))
+    return PLANT_LABELS.get(option, option)
+
+
+def _plants(agg: list[dict[str, Any]]) -> list[str]:
+    """The points' plants, in alphabetical order of their options."""
+    return [plant_label({PLANT: p}) for p in sorted({str(a.get(PLANT, "")) for a in agg})]
 
 
 def robots_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     """Bars per law and plant: ``swarm_ratio``, ``tracking_tail_mean``,
     ``settling_time`` (module docstring).
     """
-    agg = _points(rows, ("plant._target_",))
-    laws = _by_law(agg)
-    plants = list(dict.fromkeys(PLANT_NAMES.values()))
-    plants += sorted({_plant(a) for a in agg} - set(plants))
+    agg = points_with(rows, (PLANT,))
+    laws = by_law(agg)
+    plants = _plants(agg)
     panels = (
         ("swarm_ratio", r"tail $\mathrm{swarm\_l2}$ / floor", "log"),
         ("tracking_tail_mean", "tail tracking error (length/s)", "linear"),
@@ -83,7 +76,7 @@ def robots_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
         for ax, (stat, _, _) in zip(axes, panels, strict=True):
             mean, err = [], []
             for group in laws.values():
-                a = next((a for a in group if _plant(a) == plant), None)
+                a = next((a for a in group if plant_label(a) == plant), None)
                 m = a.get(f"{stat}_mean", math.nan) if a else math.nan
                 lo = a.get(f"{stat}_ci_low", math.nan) if a else math.nan
                 hi = a.get(f"{stat}_ci_high", math.nan) if a else math.nan
@@ -117,22 +110,21 @@ def robots_table(rows: list[dict[str, Any]]) -> str:
     """Markdown: per law and plant, ``swarm_l2`` over its floor, the tail tracking
     error (length / s) and the settling time (s); means with 95 % CIs.
     """
-    agg = _points(rows, ("plant._target_",))
+    agg = points_with(rows, (PLANT,))
     lines = [
         "| law | plant | swarm_l2/floor | tracking error (length/s) | settling time (s) |",
         "|---|---|---|---|---|",
     ]
-    for law, group in _by_law(agg).items():
-        for a in sorted(group, key=lambda a: list(PLANT_NAMES.values()).index(_plant(a))
-                        if _plant(a) in PLANT_NAMES.values() else 99):  # fmt: skip
+    for law, group in by_law(agg).items():
+        for a in sorted(group, key=lambda a: str(a.get(PLANT, ""))):
             lines.append(
-                f"| {law} | {_plant(a)} | {_cell(a, 'swarm_ratio')} | "
-                f"{_cell(a, 'tracking_tail_mean')} | {_cell(a, 'settling_time', '{:.1f}')} |"
+                f"| {law} | {plant_label(a)} | {cell(a, 'swarm_ratio')} | "
+                f"{cell(a, 'tracking_tail_mean')} | {cell(a, 'settling_time', '{:.1f}')} |"
             )
     return "\n".join(lines) + "\n"
 
 
-def draw_robots(study: sweep.Study) -> list[Path]:
+def draw_robots(study: Study) -> list[Path]:
     """:func:`robots_figure` and :func:`robots_table` (printed and written)."""
     paths = robots_figure(study.usable, study.out)
     table = robots_table(study.usable)
@@ -169,7 +161,7 @@ def link_boundary(rows: list[dict[str, Any]]) -> str:
     and the cells (period, latency) where the loop stays within :data:`REACHES` times its
     floor (Markdown).
     """
-    agg = _points(rows, LINK_KEYS)
+    agg = points_with(rows, LINK_KEYS)
     lines = [
         f"Loop within {REACHES} x its floor (tail swarm_l2 / floor), per loss:",
         "",
@@ -191,7 +183,7 @@ def link_boundary(rows: list[dict[str, Any]]) -> str:
 
 def link_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     """One panel per loss: ``swarm_ratio`` over period x latency (module docstring)."""
-    agg = _points(rows, LINK_KEYS)
+    agg = points_with(rows, LINK_KEYS)
     losses = sorted({float(a["link.loss"]) for a in agg})
     values = np.array([a["swarm_ratio_mean"] for a in agg], dtype=float)
     finite = values[np.isfinite(values) & (values > 0)]
@@ -225,7 +217,7 @@ def link_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
     return save_figure(fig, out, "link")
 
 
-def draw_link(study: sweep.Study) -> list[Path]:
+def draw_link(study: Study) -> list[Path]:
     """:func:`link_figure` and :func:`link_boundary` (printed and written)."""
     paths = link_figure(study.usable, study.out)
     text = link_boundary(study.usable)

@@ -46,8 +46,10 @@ and the body holds placeholders, each replaced by what the CSV says:
   ``Y`` against those of ``X`` over the matching points with ``X > 0`` (an ISS gain,
   as :mod:`analysis.laws` fits it; at least two points).
 
-In filters and in the table, ``law`` and ``<group>._target_`` take the option names of
-``conf/control`` and ``conf/<group>`` (``law=paper`` for ``PaperControl``). A placeholder
+The data names the control law in column ``law`` and the option of any other config group
+that the study varies in a column named after the group (``plant``), by the option
+names the logs record (``law=paper``, ``plant=unicycles``; :mod:`analysis.rows`). A
+placeholder
 that matches no point, or several where one is meant, stops the rendering with one line
 naming the template and the placeholder (exit status 2): a page never shows a number
 that is not in its data. A study without a template gets a page of its primary keys,
@@ -142,23 +144,6 @@ def declared_primary(name: str, conf: Path = ROOT / "conf") -> list[str]:
     return [str(k) for k in (preset.get("analysis") or {}).get("primary", [])]
 
 
-def option_names(conf: Path = ROOT / "conf") -> dict[str, dict[str, str]]:
-    """Per config group, class name (and full ``_target_``) -> option name: how a page
-    names a law or a plant (``law`` is the ``control`` group).
-    """
-    names: dict[str, dict[str, str]] = {}
-    for group in sorted(p for p in conf.iterdir() if p.is_dir()):
-        for option in sorted(group.glob("*.yaml")):
-            node = yaml.safe_load(option.read_text())
-            target = node.get("_target_") if isinstance(node, dict) else None
-            if isinstance(target, str):
-                table = names.setdefault(group.name, {})
-                table.setdefault(target, option.stem)
-                table.setdefault(target.rsplit(".", 1)[-1], option.stem)
-    names["law"] = names.get("control", {})
-    return names
-
-
 def copy_inputs(study: Study) -> list[Path]:
     """Copy the study's aggregated CSV and figure into ``docs`` when the sweep's
     outputs exist; the paths written.
@@ -206,20 +191,10 @@ class Points:
 
     Args:
         rows: The rows of ``sweep_aggregated.csv``.
-        names: :func:`option_names`.
     """
 
-    def __init__(self, rows: list[dict[str, str]], names: Mapping[str, Mapping[str, str]]):
+    def __init__(self, rows: list[dict[str, str]]):
         self.rows = rows
-        self.names = names
-
-    def display(self, key: str, cell: str) -> str:
-        """``cell`` of ``key`` as a page shows it (option names for classes)."""
-        group = "law" if key == "law" else key.removesuffix("._target_")
-        if key == "law" or key.endswith("._target_"):
-            table = self.names.get(group, {})
-            return table.get(cell, table.get(cell.rsplit(".", 1)[-1], cell))
-        return cell
 
     def column(self, stat: str) -> str:
         """The CSV column of a statistic's mean (``STAT_mean``) or of a key (``STAT``)."""
@@ -230,20 +205,13 @@ class Points:
         raise PageError(f"no column {stat!r} (or {stat}_mean) in the data")
 
     def select(self, where: Mapping[str, Any]) -> list[dict[str, str]]:
-        """The rows whose keys have the given values (option names allowed)."""
+        """The rows whose keys have the given values (``a|b``: either)."""
         rows = self.rows
         for key, wanted in where.items():
             if rows and key not in rows[0]:
                 raise PageError(f"no key {key!r} in the data")
             allowed = wanted if isinstance(wanted, list) else [wanted]
-            rows = [
-                r
-                for r in rows
-                if any(
-                    _same(r[key], str(w)) or _same(self.display(key, r[key]), str(w))
-                    for w in allowed
-                )
-            ]
+            rows = [r for r in rows if any(_same(r[key], str(w)) for w in allowed)]
         return rows
 
     def one(self, where: Mapping[str, Any]) -> dict[str, str]:
@@ -333,17 +301,19 @@ def evaluate(points: Points, expression: str, other: Callable[[str], Points] | N
     cell = row[points.column(stat)]
     value = _number(cell)
     if value is None:
-        return points.display(stat, cell)
+        return cell
     return fmt_number(value, fmt)
 
 
-def _sort_key(points: Points, keys: Sequence[str]) -> Any:
+def _sort_key(keys: Sequence[str]) -> Any:
+    """Rows in the order of their values at ``keys``: numbers first, by value, then text."""
+
     def key(row: Mapping[str, str]) -> tuple:
         out: list[tuple[int, float, str]] = []
         for k in keys:
             value = _number(row.get(k))
             if value is None:
-                out.append((1, 0.0, points.display(k, row.get(k, ""))))
+                out.append((1, 0.0, row.get(k, "")))
             else:
                 out.append((0, value, ""))
         return tuple(out)
@@ -367,7 +337,7 @@ def _cell(points: Points, row: Mapping[str, str], column: Mapping[str, Any]) -> 
     key = str(column["key"])
     if key not in row:
         raise PageError(f"no key {key!r} in the data")
-    return f"`{points.display(key, row[key])}`"
+    return f"`{row[key]}`"
 
 
 def render_pivot(points: Points, rows: list[dict[str, str]], spec: Mapping[str, Any]) -> str:
@@ -378,14 +348,14 @@ def render_pivot(points: Points, rows: list[dict[str, str]], spec: Mapping[str, 
     for key in (down, across):
         if key not in rows[0]:
             raise PageError(f"no key {key!r} in the data")
-    order = _sort_key(points, [down]), _sort_key(points, [across])
+    order = _sort_key([down]), _sort_key([across])
     ys = list(dict.fromkeys(r[down] for r in sorted(rows, key=order[0])))
     xs = list(dict.fromkeys(r[across] for r in sorted(rows, key=order[1])))
     corner = str(spec.get("label") or f"{down} \\ {across}")
-    header = [corner, *(f"`{points.display(across, x)}`" for x in xs)]
+    header = [corner, *(f"`{x}`" for x in xs)]
     lines = [_row(header), "|" + "---|" * len(header)]
     for y in ys:
-        cells = [f"`{points.display(down, y)}`"]
+        cells = [f"`{y}`"]
         for x in xs:
             match = [r for r in rows if r[down] == y and r[across] == x]
             if len(match) > 1:
@@ -404,7 +374,7 @@ def render_table(points: Points, spec: Mapping[str, Any]) -> str:
         raise PageError(f"the table's filter {spec.get('where')} matches no point")
     if "pivot" in spec:
         return render_pivot(points, rows, spec["pivot"])
-    rows = sorted(rows, key=_sort_key(points, list(spec.get("sort") or [])))
+    rows = sorted(rows, key=_sort_key(list(spec.get("sort") or [])))
     columns = [c if isinstance(c, dict) else {"key": c} for c in spec.get("columns") or []]
     if not columns:
         raise PageError("the table lists no columns")
@@ -463,9 +433,9 @@ def commands(study: Study) -> str:
     return text
 
 
-def render(study: Study, names: Mapping[str, Mapping[str, str]]) -> str:
+def render(study: Study) -> str:
     """The page of ``study``: its template with every placeholder filled from its data."""
-    points = Points(read_points(study.data), names)
+    points = Points(read_points(study.data))
     source = study.template.read_text() if study.template.exists() else None
     text = source if source is not None else default_template(study, points)
     meta, body = split_front_matter(text)
@@ -475,7 +445,7 @@ def render(study: Study, names: Mapping[str, Mapping[str, str]]) -> str:
         rows = read_points(Study(name, study.figures, study.docs).data)
         if not rows:
             raise PageError(f"no data for study {name!r}")
-        return Points(rows, names)
+        return Points(rows)
 
     def fill(match: re.Match[str]) -> str:
         expression = " ".join(match[1].split())
@@ -523,12 +493,11 @@ def main(argv: Iterable[str] | None = None) -> int:
     parser.add_argument("--figures", type=Path, default=Path("figures/sweeps"))
     parser.add_argument("--docs", type=Path, default=ROOT / "docs")
     args = parser.parse_args(None if argv is None else list(argv))
-    names = option_names()
     for name in args.study or studies(args.docs, args.figures):
         study = Study(name, args.figures, args.docs)
         copy_inputs(study)
         try:
-            page = render(study, names)
+            page = render(study)
         except PageError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2

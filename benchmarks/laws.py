@@ -1,6 +1,12 @@
 """Speed of every law in the closed loop: `python -m benchmarks.laws` (part of `make bench`).
 
-Each law runs the agents plant with the paper's estimator (KDE and both filters) on the
+    python -m benchmarks.laws [--seconds S] [--list] [OVERRIDE ...]
+
+Every law is every option of the config group `control`, as Hydra's config loader lists
+them: the project's `conf/control/` and the `control/` of each directory a
+`hydra.searchpath=[file://DIR]` override adds (a law of your own, `docs/extending.md`);
+`--list` prints them and times nothing. The overrides are also applied to every timed
+run. Each law runs the agents plant with the paper's estimator (KDE and both filters) on the
 paper's 30 x 30 grid; the rate is steps per second, the inverse of the *mean* wall time
 of a step over whole periods of the periodic laws (``psg``, ``psg_feedback``, ``ot``
 solve once per ``control.period``, and the mean counts that solve once per period),
@@ -14,22 +20,48 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from collections.abc import Sequence
 
 from threadpoolctl import threadpool_limits
 
 from benchmarks.report import record
 
-LAWS = ("paper", "heat", "langevin", "mmd", "svgd", "psg", "psg_feedback", "ot")
-"""Every law (``control=<law>``)."""
-
 TARGETS = {1024: 500.0, 65536: 20.0}
 """Steps per second asked for at each swarm size."""
 
 LARGE = ("mmd", "svgd")
-"""The laws timed at N = 65536."""
+"""The laws timed at N = 65536 (when they are options of the group)."""
 
 
-def loop_rate(law: str, n_robots: int, seconds: float) -> tuple[float, float]:
+def laws(overrides: Sequence[str] = ()) -> list[str]:
+    """The options of config group ``control`` as Hydra's config loader lists them
+    (alphabetical), with the search path ``overrides`` give
+    (``hydra.searchpath=[file:///abs/my_conf]``).
+    """
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from harness.api import CONFIG_DIR
+
+    global_hydra = GlobalHydra.instance()
+    outer = global_hydra.hydra if global_hydra.is_initialized() else None
+    global_hydra.clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            loader = GlobalHydra.instance().config_loader()
+            return loader.get_group_options(
+                "control", config_name="closed_loop", overrides=list(overrides)
+            )
+    finally:
+        global_hydra = GlobalHydra.instance()
+        global_hydra.clear()
+        if outer is not None:
+            global_hydra.initialize(outer)
+
+
+def loop_rate(
+    law: str, n_robots: int, seconds: float, overrides: Sequence[str] = ()
+) -> tuple[float, float]:
     """Closed-loop steps per second of ``control=law`` with ``n_robots`` robots: the
     inverse mean step time over ``seconds`` of simulated time after a warm-up of the
     same length; and the law's own share of a step (mean time of the law's calls over
@@ -39,7 +71,7 @@ def loop_rate(law: str, n_robots: int, seconds: float) -> tuple[float, float]:
     from harness.loop import trajectory
     from harness.runs.build import build
 
-    cfg = compose([f"control={law}", f"agents.n={n_robots}"])
+    cfg = compose([*overrides, f"control={law}", f"agents.n={n_robots}"])
     parts = build(cfg)
     spent = [0.0]
     control = parts.control
@@ -69,13 +101,22 @@ def main(argv: list[str] | None = None) -> bool:
     """Time every law; print each rate against its target; return whether all are met."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=2.0, help="simulated s per timing")
+    parser.add_argument("--list", action="store_true", help="print the laws, time nothing")
+    parser.add_argument(
+        "overrides", nargs="*", help="Hydra overrides, e.g. hydra.searchpath=[file://DIR]"
+    )
     args = parser.parse_args(argv)
+    every = laws(args.overrides)
+    if args.list:
+        print("\n".join(every))
+        return True
     print("Laws in the closed loop (agents, KDE, both filters, n = 30; steps per second):")
     ok = True
     with threadpool_limits(1):
         for n_robots, target in TARGETS.items():
-            for law in LAWS if n_robots == 1024 else LARGE:
-                rate, share = loop_rate(law, n_robots, args.seconds)
+            timed = every if n_robots == 1024 else [law for law in LARGE if law in every]
+            for law in timed:
+                rate, share = loop_rate(law, n_robots, args.seconds, args.overrides)
                 name = f"N = {n_robots:>6,d}, control={law}"
                 ok &= record(name, rate, "steps/s", target, ">=")
                 record(f"{name}: the law's share of a step", 100 * share, "%")

@@ -19,7 +19,9 @@ read in a terminal as much as in a browser:
   object fits.
 
 The directives ``automodules`` and ``modules-table`` build the API reference from the
-package tree, so a new module joins it without an edit.
+package tree, so a new module joins it without an edit. The directive ``config-options``
+and the role ``options`` list a config group's options from ``conf/<group>/``, so a new
+option (a law, a plant) joins the pages that list them without an edit.
 
 References to other projects (numpy, scipy, the standard library, Hydra, omegaconf,
 xarray, foxglove) are left unlinked: the build reaches no network, so there is no
@@ -35,9 +37,12 @@ import pkgutil
 import re
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
+import yaml
 from docutils import nodes
+from docutils.parsers.rst import directives
+from sphinx import addnodes
 from sphinx.ext.napoleon.docstring import GoogleDocstring
 from sphinx.util.docutils import SphinxDirective
 from sphinx.util.parsing import nested_parse_to_nodes
@@ -376,11 +381,177 @@ class ModulesTable(SphinxDirective):
         return nested_parse_to_nodes(self.state, "\n".join(lines), allow_section_headings=False)
 
 
+# -- config groups, from conf/ --------------------------------------------------------------
+
+CONF = ROOT / "conf"
+"""The project's configs: one directory per config group, one YAML per option."""
+
+
+def group_options(group: str) -> list[str]:
+    """The options of config group ``group`` (the YAML files of ``conf/<group>/``), the
+    default of ``conf/closed_loop.yaml`` first, then in alphabetical order.
+    """
+    names = sorted(p.stem for p in (CONF / group).glob("*.yaml"))
+    default = group_default(group)
+    return sorted(names, key=lambda name: (name != default, name))
+
+
+def group_default(group: str) -> str | None:
+    """The option ``conf/closed_loop.yaml``'s defaults list chooses for ``group``."""
+    primary = yaml.safe_load((CONF / "closed_loop.yaml").read_text()) or {}
+    for entry in primary.get("defaults") or []:
+        if isinstance(entry, dict) and group in entry:
+            return str(entry[group])
+    return None
+
+
+def option_comment(group: str, option: str) -> str:
+    """The leading comment of ``conf/<group>/<option>.yaml`` (its lines before the first
+    that is not a comment, without ``# @package``), as one paragraph.
+    """
+    words = []
+    for line in (CONF / group / f"{option}.yaml").read_text().splitlines():
+        if not line.startswith("#"):
+            break
+        text = line.lstrip("#").strip()
+        if not text.startswith("@package"):
+            words.append(text)
+    return " ".join(w for w in words if w)
+
+
+def option_target(group: str, option: str) -> str | None:
+    """The ``_target_`` of ``conf/<group>/<option>.yaml`` (at its top, or under the
+    group's key for an option that writes to the global package).
+    """
+    node = yaml.safe_load((CONF / group / f"{option}.yaml").read_text()) or {}
+    inner = node.get(group) if isinstance(node.get(group), dict) else {}
+    target = node.get("_target_") or inner.get("_target_")
+    return str(target) if target else None
+
+
+_CODE = re.compile(r"`([^`]+)`")
+"""A backtick span of a comment: code."""
+
+
+def text_nodes(text: str) -> list[nodes.Node]:
+    """``text`` as plain text with its backtick spans as inline literals (nothing else
+    in it is markup: a comment's ``*`` and ``_`` stay as they are).
+    """
+    parts = _CODE.split(text)
+    return [nodes.literal(p, p) if i % 2 else nodes.Text(p) for i, p in enumerate(parts) if p]
+
+
+def _row(cells: list[list[nodes.Node]]) -> nodes.row:
+    """A table row, one entry per cell (a list of inline nodes)."""
+    row = nodes.row()
+    for cell in cells:
+        entry = nodes.entry()
+        paragraph = nodes.paragraph()
+        paragraph.extend(cell)
+        entry += paragraph
+        row += entry
+    return row
+
+
+def _table(header: list[str], rows: list[list[list[nodes.Node]]]) -> nodes.table:
+    """A table node with ``header`` and ``rows`` (each cell a list of inline nodes)."""
+    table = nodes.table()
+    group = nodes.tgroup(cols=len(header))
+    table += group
+    for _ in header:
+        group += nodes.colspec(colwidth=1)
+    head = nodes.thead()
+    head += _row([[nodes.Text(h)] for h in header])
+    group += head
+    body = nodes.tbody()
+    for cells in rows:
+        body += _row(cells)
+    group += body
+    return table
+
+
+def _attribute_text(value: Any) -> str:
+    """A class attribute as a table cell: ``yes``/``no`` for a flag, ``-`` for none."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    return "-" if value is None or value == "" else str(value)
+
+
+class ConfigOptions(SphinxDirective):
+    """``.. config-options:: GROUP``: a table of the options of config group ``GROUP``,
+    one row per YAML of ``conf/GROUP/`` (:func:`group_options`): the option, its class
+    (``_target_``, linked to its reference) and its YAML's leading comment; the option
+    ``:attributes: NAME NAME`` adds a column per class attribute (a flag as yes/no).
+    """
+
+    required_arguments = 1
+    option_spec: ClassVar[dict[str, Any]] = {"attributes": directives.unchanged}
+
+    def run(self) -> list[nodes.Node]:
+        """The table."""
+        group = self.arguments[0]
+        attributes = (self.options.get("attributes") or "").replace(",", " ").split()
+        rows = []
+        for option in group_options(group):
+            target = option_target(group, option)
+            linked: list[nodes.Node] = [nodes.Text("-")]
+            if target is not None:
+                linked = [self.class_reference(target)]
+            default = " (default)" if option == group_default(group) else ""
+            cells = [[nodes.literal(option, option), nodes.Text(default)], linked]
+            cells.append(text_nodes(option_comment(group, option)))
+            cls = _import(target) if target else None
+            for name in attributes:
+                cells.append([nodes.Text(_attribute_text(getattr(cls, name, None)))])
+            rows.append(cells)
+        header = ["option", "class", "what it is", *(a.replace("_", " ") for a in attributes)]
+        return [_table(header, rows)]
+
+    def class_reference(self, target: str) -> nodes.Node:
+        """A reference to the class ``target`` (as ``:class:`` makes; nitpicky mode
+        reports a class the reference does not document).
+        """
+        ref = addnodes.pending_xref(
+            "",
+            nodes.literal(target, target, classes=["xref", "py", "py-class"]),
+            refdomain="py",
+            reftype="class",
+            reftarget=target,
+            refexplicit=False,
+            refwarn=True,
+        )
+        ref["refdoc"] = self.env.docname
+        return ref
+
+
+def options_role(
+    name: str, rawtext: str, text: str, lineno: int, inliner: Any, options: Any = None,
+    content: Any = None,
+) -> tuple[list[nodes.Node], list[Any]]:  # fmt: skip
+    """``{options}`GROUP```: the options of config group ``GROUP`` as inline literals
+    separated by commas, the default marked (:func:`group_options`).
+    """
+    out: list[nodes.Node] = []
+    default = group_default(text)
+    for i, option in enumerate(group_options(text)):
+        if i:
+            out.append(nodes.Text(", "))
+        out.append(nodes.literal(option, option))
+        if option == default:
+            out.append(nodes.Text(" (default)"))
+    if not out:
+        message = inliner.reporter.error(f"no options in conf/{text}/", line=lineno)
+        return [inliner.problematic(rawtext, rawtext, message)], [message]
+    return out, []
+
+
 def setup(app: Any) -> dict[str, bool]:
     """Connect the hooks above."""
     free_text_returns()
     app.add_directive("automodules", AutoModules)
     app.add_directive("modules-table", ModulesTable)
+    app.add_directive("config-options", ConfigOptions)
+    app.add_role("options", options_role)
     app.connect("autodoc-process-docstring", joined_names, priority=400)
     app.connect("autodoc-process-docstring", plain_text_docstring, priority=600)
     app.connect("autodoc-skip-member", skip_tuple_fields)

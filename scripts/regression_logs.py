@@ -7,7 +7,9 @@
 paper's experiment and the mean-field check), a decentralised smoke run, a short run of
 unicycles behind a lossy, late link, and the first
 job of every study preset in ``conf/experiment/`` (the first value of each sweep axis,
-as Hydra's basic sweeper orders them), each run once from the checkout ``--repo``
+as Hydra's basic sweeper orders them: Hydra's own parser reads each axis, so
+``glob(*)`` gives the first of the group's options in alphabetical order, as the sweep
+does), each run once from the checkout ``--repo``
 (default: this one) with the Python running this script. ``diff`` compares every log of
 ``OLD`` with the one of the same name in ``NEW`` by ``python -m analysis.diff``
 (messages byte for byte; metadata may differ) and exits 1 when one differs or is
@@ -40,15 +42,44 @@ REPRODUCE = {
 }
 
 
+def axes(repo: Path, params: dict[str, object]) -> list[list[str]]:
+    """The sweep axes of ``params`` (a preset's ``hydra.sweeper.params``) as Hydra's
+    basic sweeper expands them: per key, the overrides ``key=value`` in its order (a
+    choice sweep in the order written, ``glob(...)`` over the options of the group in
+    ``repo/conf`` in alphabetical order, a range in its order).
+    """
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(repo / "conf"), version_base="1.3"):
+            loader = GlobalHydra.instance().config_loader()
+            parser = OverridesParser.create(config_loader=loader)
+            out = []
+            for override in parser.parse_overrides([f"{k}={v}" for k, v in params.items()]):
+                key = override.get_key_element()
+                if override.is_sweep_override():
+                    out.append([f"{key}={v}" for v in override.sweep_string_iterator()])
+                else:
+                    out.append([f"{key}={override.get_value_element_as_str()}"])
+            return out
+    finally:
+        GlobalHydra.instance().clear()
+
+
 def first_jobs(repo: Path) -> dict[str, list[str]]:
-    """``{study: overrides}`` of the first job of every study preset."""
+    """``{study: overrides}`` of the first job of every study preset: the first value of
+    each of its sweep axes (:func:`axes`).
+    """
     jobs = {}
     for path in sorted((repo / "conf" / "experiment").glob("*.yaml")):
         preset = yaml.safe_load(path.read_text()) or {}
         params = (((preset.get("hydra") or {}).get("sweeper") or {}).get("params")) or {}
         if not params:
             continue
-        first = [f"{key}={str(value).split(',')[0].strip()}" for key, value in params.items()]
+        first = [axis[0] for axis in axes(repo, params)]
         jobs[path.stem] = [f"+experiment={path.stem}", *first, "hydra.mode=RUN"]
     return jobs
 

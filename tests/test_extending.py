@@ -116,3 +116,47 @@ def test_an_example_parameter_is_checked_by_its_component(tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.strip() == "invalid config: control.v_max=-1: a finite number > 0"
+
+
+def test_a_new_law_is_two_files(tmp_path):
+    """The page's law from a temporary directory on Hydra's search path: a two-law sweep
+    with it, and the analysis' law table and the benchmark's list of laws name it by its
+    option, with no edit to this project."""
+    for name, text in example_files().items():
+        path = tmp_path / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    env = example_env(tmp_path)
+    searchpath = f"hydra.searchpath=[file://{tmp_path / 'my_conf'}]"
+    sweep = tmp_path / "sweep"
+
+    def python(*args):
+        proc = subprocess.run(
+            [sys.executable, "-m", *args],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+            env=env,
+            timeout=600,
+        )
+        assert proc.returncode == 0, proc.stderr
+        return proc
+
+    python(
+        "experiments.closed_loop", "-m", searchpath, "+experiment=smoke",
+        "control=paper,saturated", "+analysis.figure=laws_n",
+        "+analysis.primary=[law,agents.n]", "log.progress=off", f"hydra.sweep.dir={sweep}",
+    )  # fmt: skip
+    out = tmp_path / "analysis"
+    analysed = python("analysis.sweep", str(sweep), "--out", str(out))
+    assert "warning" not in analysed.stderr  # every log names its law
+    table = (out / "laws_table.md").read_text()
+    assert [line.split("|")[1].strip() for line in table.splitlines()[2:]] == [
+        "paper",
+        "saturated",
+    ]
+    assert "| saturated |" in analysed.stdout
+    with_mine = python("benchmarks.laws", "--list", searchpath).stdout.split()
+    assert "saturated" in with_mine and "paper" in with_mine
+    assert with_mine == sorted(with_mine)
+    assert "saturated" not in python("benchmarks.laws", "--list").stdout.split()

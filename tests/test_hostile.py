@@ -663,7 +663,18 @@ def test_every_analysis_entry_point_works_or_says_one_line_on_foreign_logs(tmp_p
     import tracemalloc
     import warnings
 
-    from analysis import configs, diff, figures, peclet, sweep
+    from analysis import (
+        agent_figures,
+        configs,
+        convergence,
+        diff,
+        figures,
+        frontier,
+        laws,
+        peclet,
+        robots,
+        sweep,
+    )
     from analysis.load import LogError, load_run
 
     root = tmp_path_factory.mktemp("foreign")
@@ -671,7 +682,7 @@ def test_every_analysis_entry_point_works_or_says_one_line_on_foreign_logs(tmp_p
     for path, log in zip(paths, logs, strict=True):
         write_foreign(path, log)
     no_drawing = pytest.MonkeyPatch()  # draw every figure, skip rendering it (seconds)
-    for module in (figures, sweep):
+    for module in (figures, convergence, agent_figures, laws, robots, frontier):
         no_drawing.setattr(module, "save_figure", lambda fig, out, stem, dpi=120: [])
     no_drawing.setattr(figures, "animation", lambda run, out, stem: out / f"{stem}.gif")
     calls = [

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from analysis.robots import link_boundary, robots_table
-from analysis.sweep import CONFIG_PREFIX
+from analysis.rows import CONFIG_PREFIX, OPTION_PREFIX
 
 
 def _link_row(period, latency, loss, ratio, seed=0):
@@ -15,7 +15,7 @@ def _link_row(period, latency, loss, ratio, seed=0):
         CONFIG_PREFIX + "link.latency": latency,
         CONFIG_PREFIX + "link.loss": loss,
         CONFIG_PREFIX + "seed": seed,
-        "law": "PaperControl",
+        "law": "paper",
         "state": "completed",
         "swarm_ratio": ratio,
     }
@@ -53,22 +53,25 @@ def test_link_boundary_stops_at_the_first_failure():
 
 
 def test_robots_table_orders_plants_and_gives_intervals():
+    plants = (("unicycles", 2.0), ("agents", 1.0), ("double_integrators", 3.0), ("dropout", 4.0))
     rows = [
         {
-            CONFIG_PREFIX + "plant._target_": f"harness.plants.{plant}",
+            OPTION_PREFIX + "plant": plant,
+            CONFIG_PREFIX + "plant._target_": f"somewhere.{plant.title()}",
             CONFIG_PREFIX + "seed": seed,
-            "law": "HeatControl",
+            "law": "heat",
             "state": "completed",
             "swarm_ratio": ratio + seed,
             "tracking_tail_mean": 0.001,
             "settling_time": 2.0,
         }
-        for plant, ratio in (("Unicycles", 2.0), ("Agents", 1.0), ("DoubleIntegrators", 3.0))
+        for plant, ratio in plants
         for seed in (0, 1)
     ]
     lines = [x for x in robots_table(rows).splitlines() if x.startswith("| heat")]
+    # alphabetical by option; a plant without a label shows its option
     assert [x.split("|")[2].strip() for x in lines] == [
-        "ideal integrators", "unicycles", "double integrators",
+        "ideal integrators", "double integrators", "dropout", "unicycles",
     ]  # fmt: skip
     assert lines[0].split("|")[3].strip().startswith("1.5 (")  # mean of 1 and 2
 

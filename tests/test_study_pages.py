@@ -12,13 +12,13 @@ ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 
 ROWS = [
-    {"law": "PaperControl", "agents.n": "1024", "estimator.delta": "0.1", "jobs": "2",
+    {"law": "paper", "agents.n": "1024", "estimator.delta": "0.1", "jobs": "2",
      "swarm_ratio_mean": "1.07", "swarm_ratio_ci_low": "0.5", "swarm_ratio_ci_high": "1.6",
      "phi_sup_mean": "0.11", "eps_sup_mean": "0.1"},
-    {"law": "PaperControl", "agents.n": "4096", "estimator.delta": "0.3", "jobs": "2",
+    {"law": "paper", "agents.n": "4096", "estimator.delta": "0.3", "jobs": "2",
      "swarm_ratio_mean": "2.0", "swarm_ratio_ci_low": "nan", "swarm_ratio_ci_high": "nan",
      "phi_sup_mean": "0.32", "eps_sup_mean": "0.3"},
-    {"law": "HeatControl", "agents.n": "1024", "estimator.delta": "0.0", "jobs": "2",
+    {"law": "heat", "agents.n": "1024", "estimator.delta": "0.0", "jobs": "2",
      "swarm_ratio_mean": "0.83", "swarm_ratio_ci_low": "0.7", "swarm_ratio_ci_high": "0.95",
      "phi_sup_mean": "0.001", "eps_sup_mean": "0.0"},
 ]  # fmt: skip
@@ -109,7 +109,7 @@ def test_a_pivot_table_lays_a_statistic_out_by_two_keys(tmp_path):
     )
     study = make_study(tmp_path, template)
     sp.copy_inputs(study)
-    page = sp.render(study, sp.option_names())
+    page = sp.render(study)
     table = [line for line in page.splitlines() if line.startswith("|")]
     assert table[0] == r"| law \ agents.n | `1024` | `4096` |"
     assert table[2:] == ["| `heat` | 0.83 |  |", "| `paper` | 1.1 | 2 |"]
@@ -118,7 +118,7 @@ def test_a_pivot_table_lays_a_statistic_out_by_two_keys(tmp_path):
 def test_a_study_without_a_template_gets_a_page_of_its_keys(tmp_path):
     study = make_study(tmp_path, template=None, name="smoke")
     sp.copy_inputs(study)
-    page = sp.render(study, sp.option_names())
+    page = sp.render(study)
     assert "# Study `smoke`" in page and "swarm_ratio" in page and "{{" not in page
 
 
@@ -127,18 +127,18 @@ def test_a_page_without_data_renders_its_prose_and_says_where_the_numbers_come_f
     (docs / "studies").mkdir(parents=True)
     (docs / "studies" / "later.in.md").write_text("# Later\n\nQuoted.\n\n{{commands}}\n")
     study = sp.Study("later", tmp_path / "none", docs)
-    page = sp.render(study, sp.option_names())
+    page = sp.render(study)
     assert "No copy of the sweep's `sweep_aggregated.csv`" in page
     bad = docs / "studies" / "later.in.md"
     bad.write_text("# Later\n\n{{swarm_ratio @ law=paper}}\n")
     with pytest.raises(sp.PageError, match="no data"):
-        sp.render(study, sp.option_names())
+        sp.render(study)
 
 
 @pytest.mark.parametrize("name", sp.studies(DOCS, ROOT / "no-figures"))
 def test_the_committed_study_pages_are_rendered_from_their_templates_and_data(name):
     study = sp.Study(name, ROOT / "no-figures", DOCS)
-    assert study.page.read_text() == sp.render(study, sp.option_names()), (
+    assert study.page.read_text() == sp.render(study), (
         f"docs/studies/{name}.md is not what its template and data give: "
         f"python -m analysis.study_pages {name}"
     )

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from analysis.load import LogWarning, load_run
-from analysis.sweep import analyse, value
+from analysis.rows import analyse, value
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["grid.n=10", "agents.n=100", "sim.t_final=0.1", "sim.dt=0.02", "log.progress=off"]
@@ -175,14 +175,19 @@ def test_joblib_job_is_byte_identical_to_a_serial_run(tmp_path):
 
 
 def test_analysis_groups_by_the_logged_config_not_the_command_line(tmp_path):
-    """A law chosen by group (control=heat) in one sweep and by default in another are
-    told apart by the logged config; the CSV has the varied keys as columns."""
+    """Laws are told apart by the options their logs record (the choices record), not by
+    the command line or a class name; a class path the option names is not an axis."""
     multirun(tmp_path, "control=paper,heat", *TINY, "plant=meanfield", "estimator=exact")
-    rows, _ = analyse(tmp_path)
-    assert sorted(r["law"] for r in rows) == ["HeatControl", "PaperControl"]
-    from analysis.sweep import varied
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # every log records its choices: no warning
+        rows, _ = analyse(tmp_path)
+    assert sorted(r["law"] for r in rows) == ["heat", "paper"]
+    assert {value(r, "plant") for r in rows} == {"meanfield"}
+    from analysis.rows import varied
 
-    assert "control._target_" in varied(rows) and "seed" not in varied(rows)
+    keys = varied(rows)
+    assert "control._target_" not in keys and "seed" not in keys
+    assert "control.density_floor" in keys  # the heat law's own key
 
 
 def _wait_for_running_job(sweep_dir, needle, timeout=180):
@@ -324,8 +329,13 @@ def test_the_declared_figure_is_drawn_and_an_unknown_one_refused(tmp_path):
 
 
 def test_declarations_are_checked():
-    from analysis.sweep import DeclarationError, declaration
+    from functools import partial
 
+    from analysis.declaration import DeclarationError
+    from analysis.declaration import declaration as declared
+    from analysis.sweep import FIGURES
+
+    declaration = partial(declared, figures=FIGURES)
     assert declaration({"grid.n": 30}).figure == "convergence"
     decl = declaration({"analysis.figure": "iss_gain", "analysis.primary": ["law"]})
     assert (decl.figure, decl.primary, decl.tail) == ("iss_gain", ("law",), 0.25)
@@ -338,3 +348,51 @@ def test_declarations_are_checked():
     ):
         with pytest.raises(DeclarationError, match=text):
             declaration(flat)
+
+
+def _fake_log(path, config, choices=None):
+    """A log of three metric rows with a ``config`` record and, when given, ``choices``."""
+    from mcap.writer import Writer
+
+    path.parent.mkdir(parents=True)
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        cid = w.register_channel("/metrics", "json", w.register_schema("m", "jsonschema", b""))
+        for i in range(4):
+            w.add_message(cid, i, json.dumps({"t": float(i), "phi_l2": 2.0**-i}).encode(), i)
+        w.add_metadata("config", {"yaml": config})
+        if choices is not None:
+            w.add_metadata("choices", choices)
+        w.add_metadata("status", {"state": "completed", "reason": ""})
+        w.finish()
+
+
+def test_a_log_without_choices_names_components_by_class_with_one_warning(tmp_path):
+    """Logs written before the choices record: the law and the groups' columns hold the
+    class names of their _target_, and the analysis says so once for all of them."""
+    from analysis.rows import varied
+    from analysis.run_stats import SweepWarning
+
+    for job, (law, plant) in enumerate((("HeatControl", "Agents"), ("PaperControl", "Unicycles"))):
+        config = f"control:\n  _target_: old.{law}\nplant:\n  _target_: old.{plant}\n"
+        _fake_log(tmp_path / "old" / f"{job}" / "run.mcap", config)
+    with pytest.warns(SweepWarning) as caught:
+        rows, _ = analyse(tmp_path / "old")
+    said = [str(w.message) for w in caught if w.category is SweepWarning]
+    assert len(said) == 1 and "2 of 2 logs" in said[0] and "class names" in said[0]
+    assert [(r["law"], value(r, "plant")) for r in rows] == [
+        ("HeatControl", "Agents"),
+        ("PaperControl", "Unicycles"),
+    ]
+    assert varied(rows) == ["plant"]  # the class paths are named by the options
+
+    config = "control:\n  _target_: a.Law\nplant:\n  _target_: a.Plant\n"
+    _fake_log(tmp_path / "new" / "0" / "run.mcap", config, {"control": "mine", "plant": "p"})
+    log = load_run(tmp_path / "new" / "0")
+    assert log.choices == {"control": "mine", "plant": "p"} and log.has_choices
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SweepWarning)
+        (row,), _ = analyse(tmp_path / "new")
+    assert (row["law"], value(row, "plant")) == ("mine", "p")
+    assert load_run(tmp_path / "old" / "0").choices == {}
