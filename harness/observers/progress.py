@@ -16,6 +16,11 @@ PROGRESS = {"auto": None, "on": True, "off": False}
 terminal."""
 
 
+def automatic(show: object) -> bool:
+    """Whether a ``show`` value (:data:`PROGRESS`) leaves the bar to the terminal."""
+    return isinstance(show, str) and show in PROGRESS and PROGRESS[show] is None
+
+
 class ProgressBar:
     """A progress bar on standard error (tqdm) with the time and ``||p_hat - p_*||``.
 

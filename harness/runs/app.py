@@ -53,6 +53,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 from harness.loop import Experiment
 from harness.observers.base import probe
 from harness.observers.log import LOG_FILE
+from harness.observers.progress import automatic
 from harness.parameters import ParameterError
 from harness.runs.build import build
 from harness.runs.checks import ConfigError, config_line
@@ -351,7 +352,7 @@ def run_job(
     ident = {"job": job, "overrides": overrides, "config_sha256": digest}
     sweep = read_run(out.parent if sweep_dir is None else sweep_dir)
     tty = sweep.get("tty") is True
-    if tty and OmegaConf.select(cfg, "log.progress") == "auto":
+    if tty and automatic(OmegaConf.select(cfg, "log.progress")):
         with read_write(cfg), open_dict(cfg):
             OmegaConf.update(cfg, "log.progress", "off")  # the sweep's line is on the terminal
     with claim_job_dir(out):

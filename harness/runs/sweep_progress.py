@@ -255,19 +255,43 @@ def format_progress(p: Progress, dash: str = "–") -> str:
     )
 
 
-def resolve_mode(mode: str, stream: TextIO) -> str:
-    """``tty``, ``plain`` or ``off`` for a :data:`MODES` value: ``auto`` is ``tty`` when
-    ``stream`` is a terminal, ``CI`` is not ``true`` or ``1`` and ``TERM`` is not
-    ``dumb``, else ``plain``.
+@dataclass(frozen=True)
+class Display:
+    """How the progress line shows, resolved once from a :data:`MODES` value.
+
+    Attributes:
+        name: ``tty``, ``plain`` or ``off``.
+        shown: Whether there is a line at all.
+        in_place: Whether it is one line redrawn in place (a terminal) rather than lines.
     """
-    if mode != "auto":
-        return mode
+
+    name: str
+    shown: bool
+    in_place: bool
+
+
+DISPLAYS = {
+    "tty": Display("tty", shown=True, in_place=True),
+    "plain": Display("plain", shown=True, in_place=False),
+    "off": Display("off", shown=False, in_place=False),
+}
+"""The displays of the :data:`MODES` values other than ``auto``."""
+
+
+def resolve_mode(mode: str, stream: TextIO) -> Display:
+    """The display of a :data:`MODES` value: ``auto`` is ``tty`` when ``stream`` is a
+    terminal, ``CI`` is not ``true`` or ``1`` and ``TERM`` is not ``dumb``, else
+    ``plain``.
+    """
+    if mode in DISPLAYS:
+        return DISPLAYS[mode]
     ci = os.environ.get("CI", "").strip().lower() in ("true", "1")
     try:
         tty = stream.isatty()
     except (AttributeError, ValueError, OSError):
         tty = False
-    return "tty" if tty and not ci and os.environ.get("TERM") != "dumb" else "plain"
+    terminal = tty and not ci and os.environ.get("TERM") != "dumb"
+    return DISPLAYS["tty"] if terminal else DISPLAYS["plain"]
 
 
 def read_run(sweep_dir: Path) -> dict[str, Any]:
@@ -350,7 +374,8 @@ class SweepMonitor:
         self.sweep_dir, self.total, self.every = Path(sweep_dir), total, float(every)
         self.status_file, self.clock, self.poll_s = status_file, clock, poll_s
         self.stream = stream if stream is not None else sys.stderr
-        self.mode = resolve_mode(mode, self.stream)
+        self.display = resolve_mode(mode, self.stream)
+        self.mode = self.display.name
         self.run_id = secrets.token_hex(8)
         self.t0 = clock()
         self._files: dict[Path, tuple[tuple[int, int, int], JobTimes]] = {}
@@ -371,9 +396,9 @@ class SweepMonitor:
         """Record the sweep (:data:`RUN_FILE`) and start the thread; nothing when the
         mode is ``off``, or when the file cannot be written (said in one line).
         """
-        if self.mode == "off":
+        if not self.display.shown:
             return
-        run = json.dumps({"id": self.run_id, "tty": self.mode == "tty"})
+        run = json.dumps({"id": self.run_id, "tty": self.display.in_place})
         tmp = self.sweep_dir / f"{RUN_FILE}.{os.getpid()}.tmp"
         try:
             tmp.write_text(run + "\n")
@@ -442,7 +467,7 @@ class SweepMonitor:
             elif self._last_line is None:
                 started = progress.done + progress.running + progress.failed > 0
                 due = started or now - self.t0 >= FIRST_LINE_S
-            elif self.mode == "tty":
+            elif self.display.in_place:
                 due = True
             else:
                 since = now - self._last_line
@@ -474,7 +499,7 @@ class SweepMonitor:
 
     def _write(self, line: str, final: bool) -> None:
         with _DRAWING, contextlib.suppress(OSError, ValueError):  # a closed stream: no line
-            if self.mode == "tty":
+            if self.display.in_place:
                 try:
                     width = os.get_terminal_size(self.stream.fileno()).columns
                 except (OSError, ValueError, AttributeError):
