@@ -118,8 +118,9 @@ def draw_layers(ax, test) -> None:
             ax.text(x, y + 0.14, label, ha="center", va="center", fontsize=6.8, weight="bold")
             leaves = sorted({m.split(".")[0] for m in members_of.get(name, [])})
             if leaves and len(members) == 1:
-                ax.text(x, y - 0.17, ", ".join(leaves), ha="center", va="center", fontsize=5.6,
-                        color="#333333", wrap=True)  # fmt: skip
+                text = ", ".join(leaves)
+                size = 5.6 if len(text) < 100 else 5.6 * 100 / len(text)
+                ax.text(x, y - 0.17, text, ha="center", va="center", fontsize=size, color="#333333")
     for a, b in sorted(reduced(edges)):
         (xa, ya), (xb, yb) = where[a], where[b]
         ax.add_patch(
