@@ -215,7 +215,7 @@ class WeightedPoisson:
 
     def solve_reference(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
         """:meth:`solve` by the numpy iteration :func:`_pcg` preconditioned by a fresh
-        sparse LU of the pinned operator (the small grids' path before it was compiled).
+        sparse LU of the pinned operator (the numpy statement of the small grids' path).
         """
         op = (self.gt @ sp.diags(c) @ self.g).tocsr()
         delta, _, converged = _pcg(op, self._lu_preconditioner(op), b, self.tol)
