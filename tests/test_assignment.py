@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from harness import api
-from harness.control import assignment
+from harness.control import matching
 from harness.control.assignment import AssignmentControl, quantise
 from harness.control.guidance import target_masses
 from harness.control.matching import (
@@ -81,13 +81,13 @@ def test_assign_switches_to_the_large_method_above_the_exact_limit(monkeypatch):
     gen = np.random.default_rng(8)
     grid, y, cases = crossing_and_settled(300, gen)
     x = cases["settled"]
-    monkeypatch.setattr(assignment, "EXACT_MAX", 100)
+    monkeypatch.setattr(matching, "EXACT_MAX", 100)
     calls = []
-    real = assignment.large_assignment
+    real = matching.large_assignment
     monkeypatch.setattr(
-        assignment, "large_assignment", lambda *a, **k: calls.append(1) or real(*a, **k)
+        matching, "large_assignment", lambda *a, **k: calls.append(1) or real(*a, **k)
     )
-    perm = assignment.assign(grid, x, y)
+    perm = matching.assign(grid, x, y)
     assert calls == [1]
     assert transport_cost(x, y, perm) == pytest.approx(
         transport_cost(x, y, exact_assignment(x, y)), rel=1e-9
