@@ -53,7 +53,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import ot
 from threadpoolctl import threadpool_limits
 
 from harness.estimators.kde import KDE
@@ -176,6 +175,8 @@ def _w2_emd(
     positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
 ) -> float:
     """Exact ``W2`` by the network simplex (``ot.emd2``)."""
+    import ot  # POT and the scipy.stats it loads cost 0.4 s: only a W2 evaluation pays it
+
     n = positions.shape[1]
     xs = np.ascontiguousarray(positions.T)
     a = np.full(n, 1.0 / n)
@@ -195,6 +196,8 @@ def _w2_sliced_pot(
     positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
 ) -> float:
     """The sliced distance by ``ot.sliced_wasserstein_distance`` (the reference)."""
+    import ot  # as in _w2_emd
+
     n = positions.shape[1]
     xs = np.ascontiguousarray(positions.T)
     a = np.full(n, 1.0 / n)
