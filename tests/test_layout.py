@@ -24,6 +24,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "harness.grid",
         "harness.velocity",
         "harness.parameters",
+        "harness.files",
         "harness.fokker_planck",
         "harness.exact_solutions",
     ),
