@@ -158,7 +158,7 @@ def app_loop(n_robots: int, radius: float, steps: int, design: str = "grid") -> 
             f"+design={design}",
         ]
     )
-    loop = trajectory(build(cfg))
+    loop = trajectory(build(cfg), hold=True)
     for _ in range(3):
         next(loop)
     times = []
@@ -214,7 +214,7 @@ def memory_case(n_robots: int, radius: float, design: str, steps: int = 3) -> No
                  f"+design={design}"]  # fmt: skip
     cfg = compose_config(overrides)
     estimate = check_memory(cfg, GridType.square(int(cfg.grid.n), float(cfg.grid.length)))
-    loop = trajectory(build(cfg))
+    loop = trajectory(build(cfg), hold=True)
     next(loop)
     t0 = time.perf_counter()
     for _ in range(steps):

@@ -34,7 +34,7 @@ def mean_gains(n: int, steps: int, seed: int, white: bool) -> tuple[float, float
     filters = engine.filters
     if white:
         filters.correlations = None
-    loop = trajectory(parts)
+    loop = trajectory(parts, hold=True)
     next(loop)
     for _ in range(steps):
         rec, _ = next(loop)

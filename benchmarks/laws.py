@@ -84,7 +84,7 @@ def loop_rate(
 
     timed.gives_field = control.gives_field  # type: ignore[attr-defined]
     timed.own_estimates = control.own_estimates  # type: ignore[attr-defined]
-    loop = trajectory(dataclasses.replace(parts, control=timed))  # type: ignore[arg-type]
+    loop = trajectory(dataclasses.replace(parts, control=timed), hold=True)  # type: ignore[arg-type]
     steps = max(1, round(seconds / parts.dt))
     next(loop)
     for _ in range(steps):

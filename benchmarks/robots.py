@@ -44,7 +44,7 @@ def loop_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     from harness.runs.build import build
 
     parts = build(compose([f"plant={plant}", f"agents.n={n_robots}"]))
-    loop = trajectory(parts)
+    loop = trajectory(parts, hold=True)
     next(loop)
     for _ in range(steps):  # warm-up: compile, fill caches
         next(loop)

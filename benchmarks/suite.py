@@ -106,7 +106,7 @@ def closed_loop_rate(n: int, engine: str, steps: int) -> float:
     from harness.loop import trajectory
     from harness.runs.build import build
 
-    loop = trajectory(build(compose([f"grid.n={n}", f"filter.engine={engine}"])))
+    loop = trajectory(build(compose([f"grid.n={n}", f"filter.engine={engine}"])), hold=True)
     next(loop)
     next(loop)
     times = np.empty(steps)

@@ -146,6 +146,7 @@ def test_a_new_law_is_two_files(tmp_path):
         "experiments.closed_loop", "-m", searchpath, "+experiment=smoke",
         "control=paper,saturated", "+analysis.figure=laws_n",
         "+analysis.primary=[law,agents.n]", "log.progress=off", f"hydra.sweep.dir={sweep}",
+        "hydra/launcher=basic",  # in one process: no workers to start
     )  # fmt: skip
     out = tmp_path / "analysis"
     analysed = python("analysis.sweep", str(sweep), "--out", str(out))

@@ -261,7 +261,7 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest, exclusive: bool) -> 
     try:
         with computing():
             started = _initialize(exp, context)
-        for rec, values in trajectory(exp, watching, stop.window):
+        for rec, values in trajectory(exp, watching, stop.window, hold=True):
             done, last = rec.step, values
         state = "completed"
     except ConfigError:
