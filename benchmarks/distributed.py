@@ -30,6 +30,7 @@ import numba
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.ab import cli
 from benchmarks.report import record
 from harness.control.own_estimates import own_velocities
 from harness.control.paper import PaperControl, paper_law
@@ -241,7 +242,7 @@ def bench_memory() -> bool:
     return ok
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> bool:
     parser = argparse.ArgumentParser()
     parser.add_argument("--steps", type=int, default=12)
     parser.add_argument("--threads", type=int, default=1, help="numba threads")
@@ -257,17 +258,17 @@ def main() -> None:
     parser.add_argument(
         "--memory", nargs=2, metavar=("N", "DESIGN"), help="one memory case (in its own process)"
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.memory:
         with threadpool_limits(1):
             memory_case(int(args.memory[0]), 0.1, args.memory[1])
-        return
+        return True
     if args.app:
         with threadpool_limits(1):
             ok = bench_app(args.quick)
             ok &= bench_memory()
         print("all targets met" if ok else "some targets MISSED")
-        return
+        return ok
     numba.set_num_threads(args.threads)
     print(
         f"numba threads {args.threads}; BLAS pinned to 1 thread; n = 30; "
@@ -285,7 +286,8 @@ def main() -> None:
     with threadpool_limits(1):
         for n_robots, radius, k, target in cases:
             run(n_robots, radius, k, args.steps, args.initial_rounds, target, args.warmup)
+    return True
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(cli(main, "benchmarks.distributed"))

@@ -24,6 +24,7 @@ from collections.abc import Sequence
 
 from threadpoolctl import threadpool_limits
 
+from benchmarks.ab import cli
 from benchmarks.report import record
 
 TARGETS = {1024: 500.0, 65536: 20.0}
@@ -125,4 +126,4 @@ def main(argv: list[str] | None = None) -> bool:
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(cli(main, "benchmarks.laws"))

@@ -34,6 +34,7 @@ from functools import partial
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.ab import cli
 from benchmarks.report import record
 from benchmarks.suite import closed_loop_rate, median_ms
 from harness.control.paper import paper_law
@@ -148,15 +149,15 @@ def bench_closed_loop(quick: bool, repeats: int = 3) -> bool:
     return ok
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> bool:
     """Run every benchmark and print the figures against their targets."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
     parser.add_argument("--child", nargs=2, type=int, help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.child:
         kde_agents_child(*args.child)
-        return
+        return True
     import numba
 
     print(f"numba threads: {numba.get_num_threads()}, layer on first use")
@@ -167,7 +168,8 @@ def main() -> None:
     with threadpool_limits(1):
         results.append(bench_closed_loop(args.quick))
     print("all targets met" if all(results) else "some targets MISSED")
+    return all(results)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(cli(main, "benchmarks.numerics"))

@@ -14,11 +14,19 @@ numpy and numba versions, the date) and each figure against its target, benchmar
 benchmark, inside the hand-written template (placeholders ``{{machine}}`` and
 ``{{figures}}``). Without figures (no file, or an empty one) the page says that nothing
 was measured.
+
+Every figure carries the calibration of the process that measured it
+(:mod:`benchmarks.calibration`), and its target is judged in calibrations: a time ``t``
+meets a target ``T`` set on the reference host when ``t / c <= T / c_ref``, which is
+``t`` against the target on this host ``T c / c_ref``; rates scale the other way,
+memory and ratios not at all. The page shows the figure, the figure in calibrations,
+the target in calibrations and on this host, and the verdict.
 """
 
 from __future__ import annotations
 
 import argparse
+import atexit
 import datetime
 import json
 import math
@@ -29,6 +37,8 @@ import sys
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+from benchmarks import calibration
 
 ENV = "DENSITYLOOP_BENCH_FIGURES"
 """The environment variable naming the file :func:`record` appends figures to."""
@@ -50,6 +60,8 @@ class Figure:
         unit: Its unit (``ms``, ``steps/s``, ``GB``, ``x`` for a ratio).
         target: The target, or None for a figure shown for reference.
         relation: ``<=`` (the figure must be at most the target) or ``>=``.
+        calibration_ms: The calibration of the process that measured it (ms), or None
+            when it was not measured (then the target is taken as absolute).
     """
 
     benchmark: str
@@ -59,15 +71,61 @@ class Figure:
     unit: str
     target: float | None = None
     relation: str = "<="
+    calibration_ms: float | None = None
+
+    @property
+    def scale(self) -> float:
+        """How much slower this host was than the reference, to the power the unit needs.
+
+        ``(c / c_ref)^e`` with ``e`` from :func:`benchmarks.calibration.exponent`: a
+        target in the figure's unit on the reference host times this scale is the
+        target on the host that measured the figure. 1 without a calibration.
+        """
+        e = calibration.exponent(self.unit)
+        if self.calibration_ms is None or e == 0:
+            return 1.0
+        return (self.calibration_ms / calibration.REFERENCE_MS) ** e
+
+    @property
+    def calibrated(self) -> float | None:
+        """The figure in calibrations: ``t / c`` for a time, ``r c / 1000`` for a rate.
+
+        None for a unit that does not scale with the host (memory, ratios) and without a
+        calibration.
+        """
+        e = calibration.exponent(self.unit)
+        if e == 0 or self.calibration_ms is None:
+            return None
+        return (
+            self.value / self.calibration_ms if e == 1 else self.value * self.calibration_ms / 1e3
+        )
+
+    @property
+    def target_calibrated(self) -> float | None:
+        """The target in calibrations: the target on the reference host over its calibration.
+
+        None without a target or for a unit that does not scale.
+        """
+        e = calibration.exponent(self.unit)
+        if self.target is None or e == 0:
+            return None
+        ref = calibration.REFERENCE_MS
+        return self.target / ref if e == 1 else self.target * ref / 1e3
+
+    @property
+    def target_here(self) -> float | None:
+        """The target on the host that measured the figure, in the figure's unit."""
+        return None if self.target is None else self.target * self.scale
 
     @property
     def met(self) -> bool | None:
-        """Whether the target is met (None without a target)."""
-        if self.target is None:
+        """Whether the target is met on this host (None without a target)."""
+        target = self.target_here
+        if target is None:
             return None
         if self.relation == "<=":
-            return self.value <= self.target
-        return self.value >= self.target
+            return self.value <= target
+        return self.value >= target
 
 
 def _caller() -> tuple[str, str]:
@@ -82,10 +140,48 @@ def _caller() -> tuple[str, str]:
 def line(figure: Figure) -> str:
     """The printed line of ``figure``: name, value and unit, target and verdict."""
     text = f"  {figure.name:<52s} {figure.value:10.4g} {figure.unit}"
-    if figure.target is not None:
+    if figure.target_here is not None:
         verdict = "OK" if figure.met else "MISSED"
-        text += f"   target {figure.relation} {figure.target:g} {figure.unit}   {verdict}"
+        text += (
+            f"   target here {figure.relation} {figure.target_here:.4g} {figure.unit}"
+            f" ({figure.target:g} on the reference)   {verdict}"
+        )
     return text
+
+
+CALIBRATION_UNIT = "ms (calibration)"
+"""The unit of the two calibration figures each benchmark process records."""
+
+_STARTED = False
+
+
+def _host() -> float:
+    """This process's calibration; the first call also records it and, at exit, another.
+
+    The figure ``calibration at start`` is measured before the process's first figure,
+    ``calibration at end`` when the process exits: far apart, the host's speed drifted
+    while the figures were taken.
+    """
+    global _STARTED
+    c = calibration.host_ms()
+    if not _STARTED:
+        _STARTED = True
+        _write(Figure(*_caller(), "calibration at start", c, CALIBRATION_UNIT))
+        atexit.register(
+            lambda: _write(
+                Figure(*_caller(), "calibration at end", calibration.measure(), CALIBRATION_UNIT)
+            )
+        )
+    return c
+
+
+def _write(figure: Figure) -> None:
+    """Print ``figure``'s line and append it to the file ``$ENV`` names."""
+    print(line(figure), flush=True)
+    path = os.environ.get(ENV)
+    if path:
+        with open(path, "a") as f:
+            f.write(json.dumps(asdict(figure)) + "\n")
 
 
 def record(
@@ -106,26 +202,62 @@ def record(
     if relation not in ("<=", ">="):
         raise ValueError(f"relation must be '<=' or '>=', got {relation!r}")
     module, command = _caller()
-    figure = Figure(module, command, name, float(value), unit, target, relation)
-    print(line(figure), flush=True)
-    path = os.environ.get(ENV)
-    if path:
-        with open(path, "a") as f:
-            f.write(json.dumps(asdict(figure)) + "\n")
+    figure = Figure(module, command, name, float(value), unit, target, relation, _host())
+    _write(figure)
     return figure.met is not False
 
 
+FIGURES_LIMIT = 64 * 2**20
+"""The largest figures file :func:`read` opens (bytes)."""
+
+
+def _figure(fields: object) -> Figure:
+    """A :class:`Figure` from one decoded JSON line; ValueError naming what is wrong."""
+    if not isinstance(fields, dict):
+        raise ValueError("not a JSON object")
+    known = {f for f in Figure.__dataclass_fields__}
+    unknown = sorted(set(fields) - known)
+    if unknown:
+        raise ValueError(f"unknown fields {unknown}")
+    for key in ("benchmark", "command", "name", "unit"):
+        if not isinstance(fields.get(key), str):
+            raise ValueError(f"{key} must be a string")
+    for key in ("value", "target", "calibration_ms"):
+        value = fields.get(key)
+        if key == "value" or value is not None:
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ValueError(f"{key} must be a number, got {value!r}")
+    for key in ("target", "calibration_ms"):
+        value = fields.get(key)
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{key} must be a finite positive number, got {value!r}")
+    if fields.get("relation", "<=") not in ("<=", ">="):
+        raise ValueError(f"relation must be '<=' or '>=', got {fields.get('relation')!r}")
+    return Figure(**fields)
+
+
 def read(path: Path) -> list[Figure]:
-    """The figures in a file :func:`record` appended to (none when it is missing)."""
+    """The figures in a file :func:`record` appended to (none when it is missing).
+
+    Raises:
+        ValueError: one line, when the file is not a regular readable UTF-8 file of at
+            most :data:`FIGURES_LIMIT` bytes or a line is not a figure.
+    """
+    from harness.files import UnreadableFile, read_text
+
     if not path.exists():
         return []
+    try:
+        text = read_text(path, FIGURES_LIMIT)
+    except UnreadableFile as err:
+        raise ValueError(str(err)) from None
     figures = []
-    for number, text in enumerate(path.read_text().splitlines(), 1):
-        if not text.strip():
+    for number, line_ in enumerate(text.splitlines(), 1):
+        if not line_.strip():
             continue
         try:
-            figures.append(Figure(**json.loads(text)))
-        except (TypeError, ValueError) as err:
+            figures.append(_figure(json.loads(line_)))
+        except ValueError as err:
             raise ValueError(f"{path}:{number}: not a figure ({err})") from None
     return figures
 
@@ -159,8 +291,26 @@ def _number(value: float) -> str:
     return f"{value:.4g}"
 
 
+def _calibration_of(group: list[Figure]) -> str:
+    """The line saying what the benchmark's processes measured of the host."""
+    starts = [f.value for f in group if f.name == "calibration at start"]
+    ends = [f.value for f in group if f.name == "calibration at end"]
+    if not starts:
+        return "Calibration: not measured (targets taken as absolute)."
+    ref = calibration.REFERENCE_MS
+    text = ", ".join(f"{c:.3g} ms ({c / ref:.2f} x the reference)" for c in starts)
+    if ends:
+        text += "; at the end " + ", ".join(f"{c:.3g} ms" for c in ends)
+    return f"Calibration at the start: {text}."
+
+
 def figures_section(figures: Iterable[Figure]) -> str:
-    """The figures as Markdown: one table per benchmark, with the command that ran it."""
+    """The figures as Markdown: one table per benchmark, with the command that ran it.
+
+    Columns: the figure as measured; in calibrations (times over ``c``, rates times
+    ``c``); the target in calibrations; the target on the host that measured it, in the
+    figure's unit; whether it is met.
+    """
     by_benchmark: dict[str, list[Figure]] = {}
     for figure in figures:
         by_benchmark.setdefault(figure.benchmark, []).append(figure)
@@ -174,19 +324,37 @@ def figures_section(figures: Iterable[Figure]) -> str:
         out.append(f"### `{benchmark}`\n")
         if doc:
             out.append(" ".join(doc.split()) + "\n")
-        out.append("Command: " + ", ".join(f"`{c}`" for c in commands) + ".\n")
-        out.append("| figure | measured | target | met |")
-        out.append("|---|---|---|---|")
+        out.append("Command: " + ", ".join(f"`{_cell(c)}`" for c in commands) + ".\n")
+        out.append(_calibration_of(group) + "\n")
+        out.append("| figure | measured | in calibrations | target | target on this host | met |")
+        out.append("|---|---|---|---|---|---|")
         for f in group:
-            target = "" if f.target is None else f"{f.relation} {f.target:g} {f.unit}"
+            if f.unit == CALIBRATION_UNIT:
+                continue
+            cal = "" if f.calibrated is None else _number(f.calibrated)
+            if f.target is None:
+                target = here = ""
+            elif f.target_calibrated is None:
+                target = f"{f.relation} {f.target:g} {_cell(f.unit)}"
+                here = target
+            else:
+                target = f"{f.relation} {f.target_calibrated:.3g}"
+                here = f"{f.relation} {_number(f.target_here or math.nan)} {_cell(f.unit)}"
             met = {None: "", True: "yes", False: "**no**"}[f.met]
-            name = f.name.replace("|", "\\|")
-            out.append(f"| {name} | {_number(f.value)} {f.unit} | {target} | {met} |")
+            out.append(
+                f"| {_cell(f.name)} | {_number(f.value)} {_cell(f.unit)} | {cal} | {target}"
+                f" | {here} | {met} |"
+            )
         out.append("")
     with_target = [f for group in by_benchmark.values() for f in group if f.target is not None]
-    met = sum(bool(f.met) for f in with_target)
-    out.append(f"{met} of {len(with_target)} targets met.")
+    n_met = sum(bool(f.met) for f in with_target)
+    out.append(f"{n_met} of {len(with_target)} targets met, judged in calibrations.")
     return "\n".join(out)
+
+
+def _cell(text: str) -> str:
+    """``text`` safe inside a Markdown table cell: one line, no bare ``|``."""
+    return " ".join(str(text).split()).replace("|", "\\|")
 
 
 def machine_section(info: dict[str, str] | None) -> str:
@@ -206,8 +374,19 @@ def page(figures: list[Figure], template: str, info: dict[str, str] | None) -> s
     return header + body.replace("{{figures}}", figures_section(figures))
 
 
+TEMPLATE_LIMIT = 2**20
+"""The largest template :func:`main` opens (bytes)."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Write the performance page from the collected figures."""
+    """Write the performance page from the collected figures.
+
+    Returns:
+        0 when written; 2, with one line on stderr, when the figures, the template or the
+        output folder are not usable (nothing is written then).
+    """
+    from harness.files import UnreadableFile, read_text
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("figures", type=Path, help="the file the benchmarks appended to")
     parser.add_argument("--out", type=Path, default=ROOT / "docs" / "performance.md")
@@ -215,18 +394,27 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         figures = read(args.figures)
-    except ValueError as err:
+        template = read_text(args.template, TEMPLATE_LIMIT)
+    except (ValueError, UnreadableFile) as err:
         print(f"error: {err}", file=sys.stderr)
+        return 2
+    if not args.out.parent.is_dir():
+        print(f"error: {args.out.parent}: no such folder for --out", file=sys.stderr)
         return 2
     for name in {f.benchmark for f in figures}:  # their docstrings describe the sections
         try:
             __import__(name)
         except ImportError:
             pass
-    text = page(figures, args.template.read_text(), machine())
+    text = page(figures, template, machine())
     tmp = args.out.with_name(f".{args.out.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(args.out)
+    try:
+        tmp.write_text(text)
+        tmp.replace(args.out)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        print(f"error: {args.out}: {err.strerror or err}", file=sys.stderr)
+        return 2
     print(args.out)
     return 0
 

@@ -25,6 +25,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from benchmarks.ab import cli
 from benchmarks.report import record
 
 PLANTS = ("agents", "unicycles", "double_integrators")
@@ -117,7 +118,7 @@ def plant_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     return _median_ms(step, steps, repeats)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None) -> bool:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=200, help="steps per block at N = 1024")
     parser.add_argument("--repeats", type=int, default=5, help="blocks (median reported)")
@@ -147,8 +148,8 @@ def main(argv: list[str] | None = None) -> int:
             target = LARGE_STEP_TARGET_MS if plant == "unicycles" else None
             ok &= record(f"N = {args.large:,d}: {plant}, robots' step", ms, "ms", target)
             record(f"N = {args.large:,d}: {plant}, plant step", whole, "ms")
-    return 0 if ok else 1
+    return ok
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(cli(main, "benchmarks.robots"))

@@ -7,6 +7,7 @@ run with nothing else on the machine.
 
 from __future__ import annotations
 
+import argparse
 import platform
 import time
 from collections.abc import Callable
@@ -15,6 +16,7 @@ from pathlib import Path as Path_
 import numpy as np
 from threadpoolctl import threadpool_info, threadpool_limits
 
+from benchmarks.ab import cli
 from benchmarks.report import record
 from harness.control.paper import paper_law
 from harness.estimators.kde import KDE
@@ -178,8 +180,9 @@ def bench_sweeps() -> bool:
     return met and met_log
 
 
-def main() -> None:
-    """Run every benchmark and summarise."""
+def main(argv: list[str] | None = None) -> bool:
+    """Run every benchmark and summarise; whether every target was met."""
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)
     print(
         f"densityloop benchmarks on {platform.processor() or platform.machine()}, "
         f"Python {platform.python_version()}"
@@ -192,7 +195,8 @@ def main() -> None:
     with threadpool_limits(1):
         results += [bench_kde_agents(), bench_fokker_planck(), bench_filters()]
     print("all targets met" if all(results) else "SOME TARGETS MISSED")
+    return all(results)
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(cli(main, "benchmarks.suite"))
