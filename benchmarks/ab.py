@@ -180,18 +180,22 @@ def cli(main: Callable[[list[str]], object], module: str) -> int:
     """
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--vs", default=None)
-    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=None)
     known, rest = parser.parse_known_args(sys.argv[1:])
+    if known.vs is None and known.rounds is not None:
+        print("error: --rounds goes with --vs COMMIT", file=sys.stderr)
+        return 2
     if known.vs is None:
         result = main(rest)
         if isinstance(result, bool) or result is None:
             return 0 if result is not False else 1
         return int(result)  # type: ignore[call-overload]
-    if known.rounds < 1:
+    rounds = 3 if known.rounds is None else known.rounds
+    if rounds < 1:
         print("error: --rounds must be at least 1", file=sys.stderr)
         return 2
     try:
-        return ab(module, rest, known.vs, known.rounds)
+        return ab(module, rest, known.vs, rounds)
     except (ValueError, RuntimeError, subprocess.CalledProcessError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -141,6 +141,10 @@ class SwarmTruth:
         self.smoothed_target_cells = self.smoother(target.p)[0]
         self._measures: dict[int, TargetMeasure] = {}
         self._at: tuple[float, np.ndarray, np.ndarray | None] | None = None
+        # POT and the scipy.stats it loads (about a second) are loaded where the run is
+        # built: a sweep builds its jobs in the launcher's worker and forks each job from
+        # it, so the worker loads them once instead of every job
+        import ot  # noqa: F401
 
     def smoothed_at(self, t: float, cells: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """``K_h p_*(t)`` exactly and, when ``cells``, the noise-free KDE of its cell

@@ -175,7 +175,7 @@ def _w2_emd(
     positions: np.ndarray, target: TargetMeasure, n_projections: int, emd_max: int
 ) -> float:
     """Exact ``W2`` by the network simplex (``ot.emd2``)."""
-    import ot  # POT and the scipy.stats it loads cost 0.4 s: only a W2 evaluation pays it
+    import ot  # loaded by SwarmTruth where the run is built (harness.observers.swarm)
 
     n = positions.shape[1]
     xs = np.ascontiguousarray(positions.T)

@@ -15,10 +15,10 @@ process noise, ``H = I`` measurement matrix, ``R`` measurement covariance,
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.linalg as sla
-from filterpy.kalman import KalmanFilter
 
 from harness.estimators.filters.common import (
     BandLimit,
@@ -30,6 +30,9 @@ from harness.estimators.filters.common import (
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.velocity import VelocityField
+
+if TYPE_CHECKING:
+    from filterpy.kalman import KalmanFilter
 
 
 @dataclass
@@ -100,6 +103,9 @@ class FilterpyKalman(DenseKalman):
     _kf: KalmanFilter = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        # filterpy loads scipy.stats (about a second): only this engine pays for it
+        from filterpy.kalman import KalmanFilter
+
         super().__post_init__()
         m = self.x.size
         kf = KalmanFilter(dim_x=m, dim_z=m)

@@ -1,0 +1,133 @@
+"""What a sweep job costs beyond its loop: `python -m benchmarks.jobs` (part of `make bench`).
+
+    python -m benchmarks.jobs [--n N] [--seconds S]
+
+A job of the ``laws_n`` kind (``+experiment=laws_n``, the paper's law, N = 1024, 25 s,
+the default observers) in a two-job sweep on two cores (the joblib launcher, seeds 0
+and 1), against the loop alone: the same built experiment stepped by
+``harness.loop.trajectory`` with no observer, in this process. Figures:
+
+- the loop alone (s for the whole run);
+- the cost of a job: ``ended_at - started_at`` of its ``job_status.json`` (build in the
+  launcher's worker, fork, run with every observer, finalised log), the mean of the two
+  jobs; once with an empty floor cache (each job computes its finite-N floors) and once
+  with the floors cached (what most jobs of a study find: the floors depend on the
+  target, N and the seed, not on the law);
+- the sweep's wall time, from the command's start to its exit;
+- the target: a job costs at most ``1.3`` times the loop alone plus 1.5 s, judged as the
+  job's cost minus 1.3 times the loop, at most 1.5 s (a time: in calibrations).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from threadpoolctl import threadpool_limits
+
+from benchmarks.ab import cli
+from benchmarks.report import ROOT, record
+
+LOOP_FACTOR = 1.3
+"""A job may cost this many times the loop alone, plus :data:`FIXED_TARGET_S`."""
+
+FIXED_TARGET_S = 1.5
+"""A job's cost beyond ``LOOP_FACTOR`` times the loop alone, at most (s)."""
+
+
+def overrides(n_robots: int, seconds: float) -> list[str]:
+    """The job's config: ``laws_n`` with the paper's law, ``n_robots`` robots."""
+    return [
+        "+experiment=laws_n",
+        f"agents.n={n_robots}",
+        "control=paper",
+        f"sim.t_final={seconds}",
+        "log.progress=off",
+    ]
+
+
+def loop_alone_s(n_robots: int, seconds: float) -> float:
+    """Wall time (s) of the whole run's steps, the experiment built as the job builds it
+    and stepped with no observer (after building, before the first step: the first
+    steps' compiled-code loading is counted, as in a job)."""
+    from harness.api import compose
+    from harness.loop import trajectory
+    from harness.runs.build import build
+
+    cfg = compose(overrides(n_robots, seconds))
+    exp = build(cfg)
+    steps = round(seconds / exp.dt)
+    loop = trajectory(exp, hold=True)
+    t0 = time.perf_counter()
+    for _ in range(steps + 1):
+        next(loop)
+    return time.perf_counter() - t0
+
+
+def sweep(n_robots: int, seconds: float, where: Path, floors: Path) -> tuple[float, list[float]]:
+    """Run the two-job sweep into ``where``; its wall time and each job's cost (s)."""
+    cmd = [
+        sys.executable,
+        "-m",
+        "experiments.closed_loop",
+        "-m",
+        *overrides(n_robots, seconds),
+        "seed=0,1",
+        f"hydra.sweep.dir={where}",
+        f"log.floor_cache={floors}",
+    ]
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise RuntimeError(f"the sweep failed ({done.returncode}): {done.stderr[-2000:]}")
+    costs = []
+    for status in sorted(where.glob("*/job_status.json")):
+        data = json.loads(status.read_text())
+        if data.get("state") != "completed":
+            raise RuntimeError(f"{status}: {data.get('state')} {data.get('reason')}")
+        costs.append(float(data["ended_at"]) - float(data["started_at"]))
+    if len(costs) != 2:
+        raise RuntimeError(f"{where}: {len(costs)} jobs, expected 2")
+    return wall, costs
+
+
+def main(argv: list[str] | None = None) -> bool:
+    """Time the loop alone and the two-job sweep; whether the target is met."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=1024, help="robots")
+    parser.add_argument("--seconds", type=float, default=25.0, help="simulated s per job")
+    args = parser.parse_args(argv)
+    if args.n < 1 or not args.seconds > 0:
+        parser.error("--n and --seconds must be positive")
+    print(f"A sweep job of the laws_n kind (N = {args.n}, {args.seconds:g} s) against its loop:")
+    with threadpool_limits(1):
+        loop = loop_alone_s(args.n, args.seconds)
+    record("loop alone (no observer), whole run", loop, "s")
+    ok = True
+    with tempfile.TemporaryDirectory() as tmp:
+        floors = Path(tmp) / "floors"
+        for label in ("floors computed", "floors cached"):
+            where = Path(tmp) / label.replace(" ", "_")
+            wall, costs = sweep(args.n, args.seconds, where, floors)
+            cost = sum(costs) / len(costs)
+            record(f"{label}: two-job sweep, wall time", wall, "s")
+            record(f"{label}: a job's cost (mean of 2)", cost, "s")
+            record(f"{label}: a job's cost / loop alone", cost / loop, "x")
+            target = FIXED_TARGET_S if label == "floors cached" else None
+            ok &= record(
+                f"{label}: a job's cost - {LOOP_FACTOR} x loop alone",
+                cost - LOOP_FACTOR * loop,
+                "s",
+                target,
+            )
+    return ok
+
+
+if __name__ == "__main__":
+    raise SystemExit(cli(main, "benchmarks.jobs"))
