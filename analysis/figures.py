@@ -271,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-gif", action="store_true", help="skip the animation")
     args = parser.parse_args(argv)
     try:
-        runs = [load_run(p) for p in args.runs]
+        runs = [load_run(p, poses=False) for p in args.runs]  # the figures use no poses
     except LogError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

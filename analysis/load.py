@@ -36,6 +36,7 @@ from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import InvalidMagic, StreamReader
 
+from analysis.limits import ROBOT_TOPICS, Limits
 from analysis.output import atomic_path
 
 if TYPE_CHECKING:
@@ -306,7 +307,7 @@ class LogWarning(UserWarning):
     """A log that was only partly readable (truncated or damaged)."""
 
 
-def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
+def load_run(path: str | Path, topics: set[str] | None = None, poses: bool = True) -> RunLog:
     """Decode ``path`` (a ``run.mcap`` or a directory holding one).
 
     The file is read record by record, so a log cut short (a run killed with
@@ -317,11 +318,17 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     metrics message without a finite time, is skipped and counted. A metric value that
     is not a finite number (``true``, a string, ``1e400``, ``NaN``; ``null`` is the
     contract's "not applicable") is read as NaN, counted in ``foreign`` and warned
-    about.
+    about. What the log holds is bounded before it is decoded (:class:`Limits`): no
+    more messages per topic than the config record's steps, no more points per positions
+    or poses message than its robots (without a config record, a number of points in
+    proportion to the file's size); what lies beyond is skipped, counted in
+    ``recovery`` and warned about.
 
     Args:
         path: The log or its directory.
         topics: Decode only these topics (all when None); metadata is always read.
+        poses: Decode ``/swarm/poses`` (False: skip them unread, for a reader that
+            uses no poses).
 
     Raises:
         LogError: if the file is missing, empty, not an MCAP file, or holds nothing
@@ -334,11 +341,12 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
         raise LogError(f"no run log at {path}")
     if path.stat().st_size == 0:
         raise LogError(f"{path} is empty")
+    limits = Limits(path.stat().st_size)
     metric_rows: list[dict[str, float]] = []
     grids: dict[str, dict] = {}
     pos_t: list[float] = []
     positions: list[np.ndarray] = []
-    poses: list[tuple[float, np.ndarray]] = []
+    pose_list: list[tuple[float, np.ndarray]] = []
     metadata: dict[str, dict[str, str]] = {}
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
@@ -354,6 +362,8 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
                     channels[record.id] = record
                 elif isinstance(record, Metadata):
                     metadata[record.name] = dict(record.metadata)
+                    if record.name == "config":
+                        limits.configure(str(record.metadata.get("yaml", "")))
                 elif isinstance(record, Footer):
                     complete = True
                 elif isinstance(record, Message):
@@ -362,6 +372,14 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
                         n_bad += 1
                         continue
                     if topics is not None and channel.topic not in topics:
+                        continue
+                    if not poses and channel.topic == "/swarm/poses":
+                        continue
+                    if not limits.admit(channel.topic):
+                        continue
+                    if channel.topic in ROBOT_TOPICS and not limits.room(
+                        channel.topic, len(record.data)
+                    ):
                         continue
                     schema = schemas.get(channel.schema_id)
                     try:
@@ -374,7 +392,8 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
                             pos_t,
                             positions,
                             replaced,
-                            poses,
+                            pose_list,
+                            limits,
                         )
                     except Exception:  # a damaged message: skip it, count it
                         n_bad += 1
@@ -385,13 +404,21 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
     if n_messages == 0 and not metadata:
         raise LogError(f"{path} holds no readable densityloop data ({problem or 'no messages'})")
     recovery = None
-    if problem is not None or not complete or n_bad:
+    beyond = limits.summary()
+    if problem is not None or not complete or n_bad or beyond:
         last_t = metric_rows[-1]["t"] if metric_rows else float("nan")
-        recovery = (
-            f"recovered {n_messages} messages up to t = {last_t:.3f} s"
-            f"{f', skipped {n_bad} damaged' if n_bad else ''}; "
-            f"{'file ends early' if not complete else 'file damaged'}"
-            f"{f' ({problem})' if problem else ''}"
+        damage = "file ends early" if not complete else "file damaged"
+        if complete and problem is None and not n_bad:
+            damage = ""  # whole, but holding more than its config allows
+        recovery = "; ".join(
+            part
+            for part in (
+                f"recovered {n_messages} messages up to t = {last_t:.3f} s"
+                f"{f', skipped {n_bad} damaged' if n_bad else ''}",
+                f"{damage}{f' ({problem})' if problem else ''}",
+                beyond or "",
+            )
+            if part
         )
         warnings.warn(f"{path}: {recovery}", LogWarning, stacklevel=2)
     foreign = None
@@ -414,8 +441,8 @@ def load_run(path: str | Path, topics: set[str] | None = None) -> RunLog:
         positions=positions,
         recovery=recovery,
         foreign=foreign,
-        poses_t=np.array([t for t, _ in poses]),
-        poses=[p for _, p in poses],
+        poses_t=np.array([t for t, _ in pose_list]),
+        poses=[p for _, p in pose_list],
     )
 
 
@@ -440,10 +467,14 @@ def _finite(value: object) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _take(record, channel, schema, metric_rows, grids, pos_t, positions, replaced, poses) -> bool:
+def _take(
+    record, channel, schema, metric_rows, grids, pos_t, positions, replaced, poses, limits
+) -> bool:
     """Decode one message of a known topic into the accumulators; False when the
-    topic or schema is not one of the log contract's. Metric values that are not
-    finite numbers (other than ``null``) become NaN, counted by key in ``replaced``.
+    topic or schema is not one of the log contract's, or a robots message holds more
+    points than ``limits`` (:class:`Limits`) allow (then nothing is allocated for them).
+    Metric values that are not finite numbers (other than ``null``) become NaN, counted
+    by key in ``replaced``.
     """
     t = record.log_time / 1e9
     name = schema.name if schema is not None else ""
@@ -471,11 +502,15 @@ def _take(record, channel, schema, metric_rows, grids, pos_t, positions, replace
         g["v"].append(values)
     elif channel.topic == "/swarm/positions" and name == "foxglove.PointCloud":
         cloud = PointCloud.FromString(record.data)
+        if not limits.take(channel.topic, len(cloud.data) // 12):
+            return False
         pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 3)
         pos_t.append(t)
         positions.append(pts[:, :2].astype(float))
     elif channel.topic == "/swarm/poses" and name == "foxglove.PosesInFrame":
         msg = PosesInFrame.FromString(record.data)
+        if not limits.take(channel.topic, len(msg.poses)):
+            return False
         xy = np.array([(p.position.x, p.position.y) for p in msg.poses]).reshape(-1, 2)
         qz = np.array([p.orientation.z for p in msg.poses])
         qw = np.array([p.orientation.w for p in msg.poses])

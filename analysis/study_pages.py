@@ -5,14 +5,17 @@
 For every study (default: every ``docs/studies/<study>.in.md`` template and every
 study with a ``sweep_aggregated.csv`` under ``--figures``), this
 
-1. copies ``<figures>/<study>/sweep_aggregated.csv`` (written by ``python -m
-   analysis.sweep multirun/<study> --out <figures>/<study>``) to
-   ``docs/studies/data/<study>.csv`` and the study's figure
-   (``<figures>/<study>/<figure>.png``, the figure its preset declares) to
-   ``docs/sweeps/<study>.png``, when they exist; otherwise the copies already in
-   ``docs/`` are used, so a page renders without its sweep;
+1. reads ``<figures>/<study>/sweep_aggregated.csv`` (written by ``python -m
+   analysis.sweep multirun/<study> --out <figures>/<study>``) and the study's figure
+   (``<figures>/<study>/<figure>.png``, the figure its preset declares) when they exist,
+   otherwise the copies already in ``docs/`` (so a page renders without its sweep), and
+   checks them (:mod:`analysis.study_data`);
 2. renders ``docs/studies/<study>.md`` from the template ``docs/studies/<study>.in.md``
-   (hand-written prose) with every number taken from the CSV.
+   (hand-written prose) with every number taken from the CSV;
+3. only then copies the new CSV to ``docs/studies/data/<study>.csv`` and the figure to
+   ``docs/sweeps/<study>.png`` and writes the page, each atomically. An input that is
+   empty, cut short, foreign, not UTF-8 or not a regular file, or a page that does not
+   render, is one line (exit status 2) and nothing in ``docs/`` is written.
 
 ``make sweeps`` and ``make sweep-<study>`` run it after each study.
 
@@ -59,23 +62,26 @@ its main statistics and its figure.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import re
-import shutil
 import sys
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
-from analysis.output import atomic_path, write_text
-
-ROOT = Path(__file__).resolve().parents[1]
-"""The repository's root (``conf/`` and ``docs/`` are found from here)."""
+from analysis.output import write_text
+from analysis.study_data import (
+    ROOT,
+    PageError,
+    Study,
+    declared_primary,
+    read_inputs,
+    read_points,
+    write_inputs,
+)
 
 DEFAULT_STATS = ("phat_tail_mean", "swarm_tail_mean", "swarm_ratio", "rate_fit", "rate_theory")
 """The statistics of a page without a template (those the CSV has)."""
@@ -83,93 +89,6 @@ DEFAULT_STATS = ("phat_tail_mean", "swarm_tail_mean", "swarm_ratio", "rate_fit",
 
 GAIN_MIN_X = 1e-12
 """``X`` at or below this counts as no error in a gain (as in :mod:`analysis.laws`)."""
-
-
-class PageError(ValueError):
-    """A template that cannot be rendered from its data; the message is one line."""
-
-
-@dataclass(frozen=True)
-class Study:
-    """Where a study's inputs and outputs are.
-
-    Attributes:
-        name: The study (``conf/experiment/<name>.yaml``).
-        figures: The directory ``analysis.sweep`` wrote the study's outputs to.
-        docs: The documentation directory.
-    """
-
-    name: str
-    figures: Path
-    docs: Path
-
-    @property
-    def template(self) -> Path:
-        """``docs/studies/<name>.in.md``."""
-        return self.docs / "studies" / f"{self.name}.in.md"
-
-    @property
-    def page(self) -> Path:
-        """``docs/studies/<name>.md``."""
-        return self.docs / "studies" / f"{self.name}.md"
-
-    @property
-    def data(self) -> Path:
-        """``docs/studies/data/<name>.csv``, the copy of the aggregated CSV."""
-        return self.docs / "studies" / "data" / f"{self.name}.csv"
-
-    @property
-    def image(self) -> Path:
-        """``docs/sweeps/<name>.png``, the copy of the figure."""
-        return self.docs / "sweeps" / f"{self.name}.png"
-
-
-def declared_figure(name: str, conf: Path = ROOT / "conf") -> str:
-    """The figure study ``name`` declares (``analysis.figure`` of its preset; the
-    generic ``convergence`` without one).
-    """
-    path = conf / "experiment" / f"{name}.yaml"
-    if not path.exists():
-        return "convergence"
-    preset = yaml.safe_load(path.read_text()) or {}
-    return str((preset.get("analysis") or {}).get("figure", "convergence"))
-
-
-def declared_primary(name: str, conf: Path = ROOT / "conf") -> list[str]:
-    """The keys study ``name`` declares as its points (``analysis.primary``)."""
-    path = conf / "experiment" / f"{name}.yaml"
-    if not path.exists():
-        return []
-    preset = yaml.safe_load(path.read_text()) or {}
-    return [str(k) for k in (preset.get("analysis") or {}).get("primary", [])]
-
-
-def copy_inputs(study: Study) -> list[Path]:
-    """Copy the study's aggregated CSV and figure into ``docs`` when the sweep's
-    outputs exist; the paths written.
-    """
-    written = []
-    source = study.figures / study.name / "sweep_aggregated.csv"
-    if source.exists():
-        study.data.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(study.data) as tmp:
-            shutil.copyfile(source, tmp)
-        written.append(study.data)
-    figure = study.figures / study.name / f"{declared_figure(study.name)}.png"
-    if figure.exists():
-        study.image.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_path(study.image) as tmp:
-            shutil.copyfile(figure, tmp)
-        written.append(study.image)
-    return written
-
-
-def read_points(path: Path) -> list[dict[str, str]]:
-    """The rows of an aggregated CSV (empty when there is none)."""
-    if not path.exists():
-        return []
-    with path.open(newline="") as f:
-        return list(csv.DictReader(f))
 
 
 def _number(text: Any) -> float | None:
@@ -411,15 +330,17 @@ def default_template(study: Study, points: Points) -> str:
     )
 
 
-def commands(study: Study) -> str:
-    """The commands that regenerate the page's data and the page."""
+def commands(study: Study, has_data: bool) -> str:
+    """The commands that regenerate the page's data and the page; ``has_data``: the
+    page's numbers are read from the study's aggregated CSV.
+    """
     s = study.name
     sweep = f"python -m analysis.sweep multirun/{s} --out figures/sweeps/{s}"
     text = (
         f"Regenerate: `make sweep-{s}` (the sweep, then `{sweep}` and "
         f"`python -m analysis.study_pages {s}`); from existing logs, the last two alone."
     )
-    if study.data.exists():
+    if has_data:
         text += (
             f" Every number on this page is read from [`data/{s}.csv`](data/{s}.csv), the "
             "sweep's `sweep_aggregated.csv`."
@@ -433,16 +354,19 @@ def commands(study: Study) -> str:
     return text
 
 
-def render(study: Study) -> str:
-    """The page of ``study``: its template with every placeholder filled from its data."""
-    points = Points(read_points(study.data))
+def render(study: Study, rows: list[dict[str, str]] | None = None) -> str:
+    """The page of ``study``: its template with every placeholder filled from its data
+    (``rows``, default the checked copy in ``docs``, :func:`read_points`); a study named
+    by ``study=NAME`` is read as :func:`read_inputs` reads it.
+    """
+    points = Points(read_points(study.data) if rows is None else rows)
     source = study.template.read_text() if study.template.exists() else None
     text = source if source is not None else default_template(study, points)
     meta, body = split_front_matter(text)
     where = study.template if source is not None else "default template"
 
     def other(name: str) -> Points:
-        rows = read_points(Study(name, study.figures, study.docs).data)
+        rows = read_inputs(Study(name, study.figures, study.docs)).rows
         if not rows:
             raise PageError(f"no data for study {name!r}")
         return Points(rows)
@@ -453,7 +377,7 @@ def render(study: Study) -> str:
             if expression == "figure":
                 return f"![{study.name}](../sweeps/{study.name}.png)"
             if expression == "commands":
-                return commands(study)
+                return commands(study, bool(points.rows))
             if expression == "csv":
                 return f"[`data/{study.name}.csv`](data/{study.name}.csv)"
             if not points.rows:
@@ -495,12 +419,13 @@ def main(argv: Iterable[str] | None = None) -> int:
     args = parser.parse_args(None if argv is None else list(argv))
     for name in args.study or studies(args.docs, args.figures):
         study = Study(name, args.figures, args.docs)
-        copy_inputs(study)
-        try:
-            page = render(study)
+        try:  # the inputs are checked and the page rendered before anything is written
+            inputs = read_inputs(study)
+            page = render(study, inputs.rows)
         except PageError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
+        write_inputs(study, inputs)
         write_text(study.page, page)
         print(study.page)
     return 0

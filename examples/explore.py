@@ -8,8 +8,8 @@
 # the same with the heat-equation law (`control=heat`), compared.
 #
 # Run it as a script (`python examples/explore.py`, from any directory: the figure goes
-# to `$EXPLORE_FIGURE`, else to a temporary directory) or cell by cell in an editor that
-# reads `# %%` cells (VS Code, Spyder, Jupytext).
+# to `$EXPLORE_FIGURE`, its folder created when missing, else to a temporary directory)
+# or cell by cell in an editor that reads `# %%` cells (VS Code, Spyder, Jupytext).
 
 # %%
 import os
@@ -25,6 +25,14 @@ if "ipykernel" not in sys.modules:
 import matplotlib.pyplot as plt
 
 from harness import api
+
+# where the figure goes, decided before the simulations: a missing folder is created, and
+# one that cannot be stops here, not after them
+figure = Path(os.environ.get("EXPLORE_FIGURE") or Path(tempfile.mkdtemp()) / "explore.png")
+try:
+    figure.parent.mkdir(parents=True, exist_ok=True)
+except OSError as err:
+    sys.exit(f"error: EXPLORE_FIGURE={figure}: no folder for it ({err.strerror or err})")
 
 SHORT = ["sim.t_final=20", "grid.n=20"]  # the paper's defaults otherwise (conf/closed_loop.yaml)
 cfg = api.compose(SHORT)
@@ -56,6 +64,5 @@ for law, (t, err) in curves.items():
     ax.plot(t, err, label=f"control={law}")
 ax.set(xlabel="t (s)", ylabel=r"$\|\hat p - p_*\|$ (1/length)", yscale="log")
 ax.legend()
-figure = Path(os.environ.get("EXPLORE_FIGURE") or Path(tempfile.mkdtemp()) / "explore.png")
 fig.savefig(figure, dpi=120)
 print(f"figure: {figure}")

@@ -134,8 +134,10 @@ def check_example_outputs(figure: Path, final: dict[str, float], curves: dict) -
         assert 0 < final[law] == err[-1] < 0.5 * err[0], law
 
 
-def test_the_example_runs_from_another_directory(tmp_path, monkeypatch):
-    figure = tmp_path / "figure.png"
+def test_the_example_runs_from_another_directory_and_makes_its_figure_s_folder(
+    tmp_path, monkeypatch
+):
+    figure = tmp_path / "new" / "figures" / "figure.png"
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("EXPLORE_FIGURE", str(figure))
     import matplotlib.pyplot as plt
@@ -145,7 +147,24 @@ def test_the_example_runs_from_another_directory(tmp_path, monkeypatch):
     finally:
         plt.close("all")
     check_example_outputs(figure, out["final"], out["curves"])
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["figure.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new"]
+
+
+def test_the_example_stops_before_simulating_when_its_figure_has_no_folder(
+    tmp_path, monkeypatch, capsys
+):
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv("EXPLORE_FIGURE", str(tmp_path / "a-file" / "figure.png"))
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("simulated before the figure's folder was checked")
+
+    monkeypatch.setattr(api, "simulate", no_simulation)
+    with pytest.raises(SystemExit) as stop:
+        runpy.run_path(str(EXAMPLE), run_name="__main__")
+    message = str(stop.value.code)
+    assert message.startswith("error: EXPLORE_FIGURE=") and "a-file" in message
+    assert "\n" not in message
 
 
 def readme_example() -> str:

@@ -121,11 +121,11 @@ def test_sweep_resumed_after_a_code_change_reruns_every_job_whose_code_differs(
     from harness.runs.app import run_job
 
     repo = tmp_path / "code"
-    repo.mkdir()
-    (repo / "law.py").write_text("ALPHA = 1\n")
+    (repo / "harness").mkdir(parents=True)
+    (repo / "harness" / "law.py").write_text("ALPHA = 1\n")
     git = ["git", "-C", str(repo), "-c", "user.name=t", "-c", "user.email=t@t"]
     subprocess.run([*git, "init", "-q"], check=True)
-    subprocess.run([*git, "add", "law.py"], check=True)
+    subprocess.run([*git, "add", "harness/law.py"], check=True)
     subprocess.run([*git, "commit", "-qm", "one"], check=True)
     monkeypatch.setattr(identity, "ROOT", repo)  # the code under git is this repository
     jobs = {"a": compose(SMALL), "b": compose([*SMALL, "seed=3"])}
@@ -138,7 +138,7 @@ def test_sweep_resumed_after_a_code_change_reruns_every_job_whose_code_differs(
 
     assert {n: s["runs"] for n, s in resume().items()} == {"a": 1, "b": 1}
     assert {n: s["runs"] for n, s in resume().items()} == {"a": 1, "b": 1}  # same code
-    (repo / "law.py").write_text("ALPHA = 2\n")  # an edit, not committed
+    (repo / "harness" / "law.py").write_text("ALPHA = 2\n")  # an edit, not committed
     before = (sweep_dir / "a" / "run.mcap").read_bytes()
     status = resume()
     assert {n: s["runs"] for n, s in status.items()} == {"a": 2, "b": 2}

@@ -217,6 +217,44 @@ def test_client_receives_and_decodes_a_grid():
     assert json.loads(got["/metrics"][1]) == {"t": 0.25, "phi_l2": 1.5}
 
 
+def ipv6_loopback() -> bool:
+    """Whether this machine can bind the IPv6 loopback ``::1``."""
+    try:
+        with socket.socket(socket.AF_INET6, socket.SOCK_STREAM) as s:
+            s.bind(("::1", 0))
+    except OSError:
+        return False
+    return True
+
+
+@pytest.mark.parametrize(
+    "host, url",
+    [
+        ("127.0.0.1", "ws://127.0.0.1:8765"),
+        ("localhost", "ws://localhost:8765"),
+        ("::1", "ws://[::1]:8765"),
+        ("[::1]", "ws://[::1]:8765"),
+        ("fe80::1%eth0", "ws://[fe80::1%25eth0]:8765"),
+    ],
+)
+def test_the_live_view_s_address_is_a_url_for_every_host(host, url):
+    from urllib.parse import urlsplit
+
+    from harness.observers.live import ws_url
+
+    assert ws_url(host, 8765) == url
+    assert urlsplit(url).port == 8765
+
+
+@pytest.mark.skipif(not ipv6_loopback(), reason="no IPv6 loopback here")
+def test_a_live_view_on_an_ipv6_host_prints_a_url_a_client_connects_to():
+    with LiveServer(host="::1", port=0) as server:
+        assert server.url == f"ws://[::1]:{server.port}"
+        server.channel("/metrics", *metrics_schema())
+        with Client(server.url, {"/metrics"}) as client:
+            client.wait_for(lambda: server.subscribed("/metrics"), "subscribed over IPv6")
+
+
 @pytest.mark.parametrize("offer", [(LEGACY,), (SUBPROTOCOL,), (LEGACY, SUBPROTOCOL)])
 def test_either_subprotocol_name_connects_and_gets_the_simulated_clock(offer):
     # Foxglove Studio 1.x offers only the old name; the server answers with the name the

@@ -337,3 +337,20 @@ def test_moving_target_is_logged_at_the_field_rate(tmp_path) -> None:
     for t, values in zip(series.t, series.values, strict=True):
         np.testing.assert_allclose(values[0], path.at(float(t)).p, rtol=1e-6)
     assert np.abs(series.values[-1] - series.values[0]).max() > 1e-3  # it does move
+
+
+def test_the_docs_say_a_moving_target_is_logged_at_the_field_rate() -> None:
+    """docs/targets.md and docs/log.md describe `/fields/p_target` of a moving target as
+    the code writes it (the test above): at the field rate, not once.
+    """
+    import re
+    from pathlib import Path
+
+    docs = Path(__file__).resolve().parents[1] / "docs"
+    for name in ("targets.md", "log.md"):
+        text = " ".join((docs / name).read_text().split())
+        said = [s for s in re.split(r"(?<=[.;|])\s", text) if "/fields/p_target" in s]
+        assert said, f"docs/{name} does not describe /fields/p_target"
+        for sentence in said:
+            if "once" in sentence:
+                assert "field rate" in sentence, f"docs/{name}: {sentence}"

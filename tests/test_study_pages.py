@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from analysis import study_pages as sp
+from analysis.study_data import read_inputs
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -108,8 +109,7 @@ def test_a_pivot_table_lays_a_statistic_out_by_two_keys(tmp_path):
         "  pivot: {rows: law, columns: agents.n, stat: swarm_ratio, fmt: .2g}\n",
     )
     study = make_study(tmp_path, template)
-    sp.copy_inputs(study)
-    page = sp.render(study)
+    page = sp.render(study, read_inputs(study).rows)
     table = [line for line in page.splitlines() if line.startswith("|")]
     assert table[0] == r"| law \ agents.n | `1024` | `4096` |"
     assert table[2:] == ["| `heat` | 0.83 |  |", "| `paper` | 1.1 | 2 |"]
@@ -117,8 +117,7 @@ def test_a_pivot_table_lays_a_statistic_out_by_two_keys(tmp_path):
 
 def test_a_study_without_a_template_gets_a_page_of_its_keys(tmp_path):
     study = make_study(tmp_path, template=None, name="smoke")
-    sp.copy_inputs(study)
-    page = sp.render(study)
+    page = sp.render(study, read_inputs(study).rows)
     assert "# Study `smoke`" in page and "swarm_ratio" in page and "{{" not in page
 
 
@@ -142,3 +141,68 @@ def test_the_committed_study_pages_are_rendered_from_their_templates_and_data(na
         f"docs/studies/{name}.md is not what its template and data give: "
         f"python -m analysis.study_pages {name}"
     )
+
+
+GOOD_DATA = b"law,jobs,swarm_ratio_mean\r\npaper,2,1.07\r\n"
+
+
+@pytest.mark.parametrize(
+    "data, why",
+    [
+        (b"", "empty"),
+        (b"law,agents.n,jobs,swarm_ratio_mean\r\npaper,1024,2,1.0", "cut short"),
+        (b"law,agents.n,jobs,swarm_ratio_mean\r\npaper,1024\r\n", "cut short"),
+        (b"law,agents.n,jo", "not an aggregated sweep CSV"),
+        (b"name,price\r\nwidget,3\r\n", "not an aggregated sweep CSV"),
+        (b"law,jobs,swarm_ratio_mean\r\n", "without rows"),
+        (b"law,jobs,swarm_ratio_mean\r\npaper,2,\xff\xfe1.0\r\n", "not UTF-8"),
+        (b'law,jobs,swarm_ratio_mean\r\n"paper,2,1.0\r\n', "cut short"),
+    ],
+    ids=["empty", "cut-mid-row", "short-row", "cut-header", "foreign", "header-only",
+         "not-utf8", "open-quote"],
+)  # fmt: skip
+def test_a_bad_aggregated_csv_is_refused_in_one_line_before_anything_is_written(
+    tmp_path, capsys, data, why
+):
+    study = make_study(tmp_path)
+    study.data.parent.mkdir(parents=True)
+    study.data.write_bytes(GOOD_DATA)
+    study.page.write_text("the old page\n")
+    (study.figures / study.name / "sweep_aggregated.csv").write_bytes(data)
+    code = sp.main([study.name, "--figures", str(study.figures), "--docs", str(study.docs)])
+    err = capsys.readouterr().err
+    assert code == 2 and why in err and len(err.strip().splitlines()) == 1, err
+    assert "sweep_aggregated.csv" in err
+    assert study.data.read_bytes() == GOOD_DATA  # the committed data is kept
+    assert study.page.read_text() == "the old page\n"
+    assert not study.image.exists()  # nothing copied
+    assert sorted(p.name for p in study.data.parent.iterdir()) == [f"{study.name}.csv"]
+
+
+def test_a_fifo_or_a_non_png_in_place_of_an_input_is_refused_without_writing(tmp_path, capsys):
+    import os
+
+    study = make_study(tmp_path)
+    source = study.figures / study.name / "sweep_aggregated.csv"
+    source.unlink()
+    os.mkfifo(source)  # would block an open() for reading
+    args = [study.name, "--figures", str(study.figures), "--docs", str(study.docs)]
+    assert sp.main(args) == 2
+    assert "a FIFO" in capsys.readouterr().err
+    assert not study.data.exists() and not study.page.exists()
+    source.unlink()
+    make_study(tmp_path / "again")  # a good CSV, beside a figure that is not a PNG
+    study = sp.Study(study.name, tmp_path / "again" / "figures", tmp_path / "again" / "docs")
+    (study.figures / study.name / "convergence.png").write_text("<html>")
+    assert sp.main([*args[:1], "--figures", str(study.figures), "--docs", str(study.docs)]) == 2
+    assert "not a PNG image" in capsys.readouterr().err
+    assert not study.data.exists() and not study.page.exists()
+
+
+def test_a_new_csv_is_written_only_when_its_page_renders(tmp_path, capsys):
+    study = make_study(tmp_path, "# A study\n\n{{swarm_ratio @ law=nosuch}}\n")
+    study.data.parent.mkdir(parents=True)
+    study.data.write_bytes(GOOD_DATA)
+    args = [study.name, "--figures", str(study.figures), "--docs", str(study.docs)]
+    assert sp.main(args) == 2
+    assert study.data.read_bytes() == GOOD_DATA and not study.page.exists()

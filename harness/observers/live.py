@@ -62,6 +62,17 @@ LEGACY_SUBPROTOCOL = "foxglove.websocket.v1"
 """The protocol's former name, the one older clients offer."""
 
 
+def ws_url(host: str, port: int) -> str:
+    """The WebSocket URL of ``host:port``: ``ws://127.0.0.1:8765``, ``ws://name:8765``, an
+    IPv6 address in brackets (``ws://[::1]:8765``, a zone as ``%25``, RFC 6874).
+    """
+    if ":" in host:
+        bare = host.removeprefix("[").removesuffix("]")
+        address, percent, zone = bare.partition("%")
+        return f"ws://[{address}{'%25' + zone if percent else ''}]:{port}"
+    return f"ws://{host}:{port}"
+
+
 class LiveServerError(RuntimeError):
     """The live server could not start (for example, its port is in use)."""
 
@@ -291,7 +302,7 @@ class LiveServer:
         except OSError as err:
             self._server.stop()
             raise LiveServerError(
-                f"live view: cannot serve on ws://{host}:{port}: {err.strerror or err} "
+                f"live view: cannot serve on {ws_url(host, port)}: {err.strerror or err} "
                 f"(choose another log.live_port or stop the program using it)"
             ) from None
         self.port: int = self._shim.port
@@ -299,8 +310,8 @@ class LiveServer:
 
     @property
     def url(self) -> str:
-        """``ws://host:port``, the address to open in Foxglove."""
-        return f"ws://{self.host}:{self.port}"
+        """``ws://host:port``, the address to open in Foxglove (:func:`ws_url`)."""
+        return ws_url(self.host, self.port)
 
     def channel(
         self,
@@ -430,7 +441,7 @@ class LiveView:
                     raise ParameterError(
                         "port",
                         self.port,
-                        f"a port free to serve on (ws://{self.host}:{self.port}: "
+                        f"a port free to serve on ({ws_url(self.host, self.port)}: "
                         f"{err.strerror}; choose another log.live_port or stop the program "
                         "using it)",
                     ) from None

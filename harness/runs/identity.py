@@ -8,11 +8,11 @@ the same code; :func:`provenance` says which code, packages and machine made the
 
 from __future__ import annotations
 
-import contextlib
 import datetime as dt_
 import hashlib
 import importlib.metadata
 import json
+import os
 import platform
 import subprocess
 import sys
@@ -21,6 +21,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from harness.files import UnreadableFile, read_bytes
 from harness.runs.checks import PRESENTATION_KEYS
 
 PACKAGES = (
@@ -149,18 +150,33 @@ def _without(data: dict, paths: list[list[str]]) -> dict:
     return out
 
 
-ROOT = Path(__file__).resolve().parents[1]
-"""The source tree (or installation) of the ``harness`` package."""
+ROOT = Path(__file__).resolve().parents[2]
+"""The project's root: the directory that holds the ``harness`` package (a source
+checkout's top level, or ``site-packages`` of an installation)."""
 
+
+CODE_DIRS = ("harness", "analysis", "experiments", "conf")
+"""The folders of :data:`ROOT` that hold the code: the packages and their configs."""
 
 CODE_SUFFIXES = (".py", ".yaml", ".c", ".h", ".toml", ".cfg")
-"""Files that are code or configuration: untracked ones count in the diff's hash."""
+"""Files that are code or configuration; any other file (notes, a floor cache, logs,
+compiled caches) is not the code."""
+
+MAX_CODE_FILE = 64 << 20
+"""Largest code file read whole for the hash (bytes); a larger one, or one that is not a
+regular file, enters the hash by its refusal (:mod:`harness.files`)."""
 
 
 def _git(*args: str, text: bool = True) -> Any:
-    """Output of a git command in :data:`ROOT` (``"unknown"`` when git fails)."""
+    """Output of a git command in :data:`ROOT` (``"unknown"`` when git fails). Git's
+    own environment variables (``GIT_DIR``, ``GIT_WORK_TREE``, ...) are left out, so
+    the repository is the one that holds :data:`ROOT`, if any.
+    """
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     try:
-        out = subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=text, timeout=30)
+        out = subprocess.run(
+            ["git", *args], cwd=ROOT, capture_output=True, text=text, timeout=30, env=env
+        )
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     if out.returncode != 0:
@@ -168,49 +184,124 @@ def _git(*args: str, text: bool = True) -> Any:
     return out.stdout.strip() if text else out.stdout
 
 
+def is_code(name: str) -> bool:
+    """Whether ``name`` (a path relative to :data:`ROOT`, ``/``-separated) is a code or
+    config file of the project: in one of :data:`CODE_DIRS`, with a suffix of
+    :data:`CODE_SUFFIXES`.
+    """
+    parts = name.split("/")
+    return len(parts) > 1 and parts[0] in CODE_DIRS and Path(name).suffix in CODE_SUFFIXES
+
+
+def _file_digest(digest: Any, name: str) -> None:
+    """Feed the code file ``name`` (relative to :data:`ROOT`) into ``digest``: its
+    name, then its bytes, or the reason it cannot be read (a FIFO or device never
+    blocks or fills memory, :func:`harness.files.read_bytes`).
+    """
+    digest.update(name.encode(errors="surrogateescape") + b"\0")
+    try:
+        digest.update(read_bytes(ROOT / name, MAX_CODE_FILE))
+    except UnreadableFile as err:
+        digest.update(f"unreadable: {err}".encode(errors="surrogateescape"))
+
+
 def _source_sha256() -> str:
-    """SHA-256 of the code and config files of the installed packages (``harness``,
-    ``analysis``, ``experiments``, ``conf``): the code's identity when git cannot say.
+    """SHA-256 of the code and config files of :data:`CODE_DIRS` (:func:`is_code`),
+    names and contents: the code's identity when git does not hold the project.
     """
     digest = hashlib.sha256()
-    for folder in ("harness", "analysis", "experiments", "conf"):
+    names = []
+    for folder in CODE_DIRS:
         base = ROOT / folder
         if not base.is_dir():
             continue
-        for path in sorted(base.rglob("*")):
-            if path.suffix in CODE_SUFFIXES and path.is_file():
-                digest.update(str(path.relative_to(ROOT)).encode() + b"\0")
-                digest.update(path.read_bytes())
+        for path in base.rglob("*"):
+            name = path.relative_to(ROOT).as_posix()
+            if is_code(name) and not path.is_dir():
+                names.append(name)
+    for name in sorted(names):
+        _file_digest(digest, name)
+    return digest.hexdigest()
+
+
+def _git_holds_project() -> str | None:
+    """The commit of :data:`ROOT` when git holds the project there: the top level of
+    the repository that contains :data:`ROOT` is :data:`ROOT` itself (not a checkout
+    around a copy of the project or around an installation) and it tracks the code
+    (files of :data:`CODE_DIRS`) at that commit; None otherwise.
+    """
+    top = _git("rev-parse", "--show-toplevel")
+    if top == "unknown":
+        return None
+    try:
+        if Path(top).resolve() != ROOT.resolve():
+            return None
+    except OSError:
+        return None
+    commit = _git("rev-parse", "--verify", "HEAD^{commit}")
+    if commit == "unknown":
+        return None
+    tracked = _git("ls-tree", "-r", "--name-only", "-z", "HEAD", "--", *CODE_DIRS, text=False)
+    if not isinstance(tracked, bytes) or not any(
+        is_code(n.decode(errors="surrogateescape")) for n in tracked.split(b"\0") if n
+    ):
+        return None
+    return str(commit)
+
+
+def _code_changes() -> str:
+    """``clean`` when the code files (:func:`is_code`) are those of the commit, else
+    SHA-256 of ``git diff HEAD`` over the tracked code files and of the names and
+    contents of the code files git does not track (ignored ones included: ignoring a
+    file does not make it less the code). Any other file, tracked or not (notes,
+    documentation, a floor cache or outputs in the checkout), is not the code.
+    """
+    changed = _git("diff", "HEAD", "--name-only", "-z", "--", *CODE_DIRS, text=False)
+    others = _git("ls-files", "--others", "-z", "--", *CODE_DIRS, text=False)
+    if not isinstance(changed, bytes) or not isinstance(others, bytes):
+        return "unknown"
+    decode = [n.decode(errors="surrogateescape") for n in changed.split(b"\0") if n]
+    tracked = sorted(n for n in decode if is_code(n))
+    untracked = sorted(
+        n
+        for n in (o.decode(errors="surrogateescape") for o in others.split(b"\0") if o)
+        if is_code(n)
+    )
+    if not tracked and not untracked:
+        return "clean"
+    digest = hashlib.sha256()
+    if tracked:
+        diff = _git("diff", "HEAD", "--binary", "--", *tracked, text=False)
+        digest.update(diff if isinstance(diff, bytes) else str(diff).encode())
+    for name in untracked:
+        _file_digest(digest, name)
     return digest.hexdigest()
 
 
 def code_identity() -> dict[str, str]:
     """What identifies the code a run computes with: the git commit, the dirty flag,
-    ``git_diff_sha256`` (SHA-256 of ``git diff HEAD`` and of the untracked code and
-    config files; ``clean`` when there are none), the versions of Python and of
-    :data:`PACKAGES`, and ``code_sha256``, the hash of all of these. Without git (an
-    installed package) the diff's hash is the hash of the package's own source files.
+    ``git_diff_sha256``, the versions of Python and of :data:`PACKAGES`, and
+    ``code_sha256``, the hash of all of these.
+
+    Git says which code only when it holds the project (:func:`_git_holds_project`:
+    the repository's top level is :data:`ROOT` and it tracks the code); then
+    ``git_diff_sha256`` is ``clean`` or the hash of the changed code
+    (:func:`_code_changes`) and ``git_dirty`` whether the code changed. Otherwise (an
+    installed package, a copy of the project inside another checkout, no git)
+    ``git_commit`` and ``git_dirty`` are ``unknown`` and ``git_diff_sha256`` is
+    ``source:`` and the hash of the code files themselves (:func:`_source_sha256`).
     """
-    info = {"git_commit": _git("rev-parse", "HEAD")}
-    status = _git("status", "--porcelain")
-    info["git_dirty"] = "unknown" if status == "unknown" else str(bool(status)).lower()
-    if info["git_commit"] == "unknown":
-        info["git_diff_sha256"] = f"source:{_source_sha256()}"
-    elif info["git_dirty"] == "false":
-        info["git_diff_sha256"] = "clean"
+    commit = _git_holds_project()
+    changes = "unknown" if commit is None else _code_changes()
+    if commit is None or changes == "unknown":
+        info = {
+            "git_commit": "unknown",
+            "git_dirty": "unknown",
+            "git_diff_sha256": f"source:{_source_sha256()}",
+        }
     else:
-        digest = hashlib.sha256()
-        diff = _git("diff", "HEAD", "--binary", text=False)
-        digest.update(diff if isinstance(diff, bytes) else str(diff).encode())
-        others = _git("ls-files", "--others", "--exclude-standard", "-z", text=False)
-        names = others.split(b"\0") if isinstance(others, bytes) else []
-        for entry in sorted(n for n in names if n):
-            path = ROOT / entry.decode(errors="surrogateescape")
-            if path.suffix in CODE_SUFFIXES and path.is_file():
-                digest.update(entry + b"\0")
-                with contextlib.suppress(OSError):
-                    digest.update(path.read_bytes())
-        info["git_diff_sha256"] = digest.hexdigest()
+        dirty = str(changes != "clean").lower()
+        info = {"git_commit": commit, "git_dirty": dirty, "git_diff_sha256": changes}
     info["python"] = sys.version.split()[0]
     for name in PACKAGES:
         try:

@@ -1,0 +1,107 @@
+"""A forged log cannot make the analysis allocate without bound (analysis/limits.py):
+what it claims beyond its own config record's robots and steps, or beyond its size, is
+skipped unread with a LogWarning, and analysis.figures decodes no poses at all.
+"""
+
+import json
+import tracemalloc
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+from mcap.writer import CompressionType, Writer
+from mcap_protobuf.schema import register_schema
+
+from analysis.load import LogWarning, load_run
+from harness.observers.log import poses_message
+
+ROBOTS = 200
+CONFIG = "agents:\n  n: 200\nsim:\n  dt: 0.02\n  t_final: 0.04\n"  # 3 steps
+
+
+def forge(
+    path: Path,
+    config: str | None,
+    repeats: int,
+    huge: int,
+    robots: int = ROBOTS,
+    chunk: int = 1 << 20,
+) -> Path:
+    """A log of one poses message of ``huge`` robots, then ``repeats`` of ``robots``
+    robots, with ``config`` as its config record (none when None), in chunks of
+    ``chunk`` bytes (a large chunk repeats a message for a few bytes each time).
+    """
+    rng = np.random.default_rng(0)
+    with open(path, "wb") as f:
+        w = Writer(f, compression=CompressionType.ZSTD, chunk_size=chunk)
+        w.start(profile="", library="forger")
+        if config is not None:
+            w.add_metadata("config", {"yaml": config})
+        w.add_metadata("status", {"state": "completed"})
+        schema = register_schema(w, PosesInFrame)  # type: ignore[arg-type]
+        poses = w.register_channel("/swarm/poses", "protobuf", schema)
+        metrics = w.register_channel("/metrics", "json", 0)
+        heading = np.vstack([np.ones(robots), np.zeros(robots)])
+        one = poses_message(0.0, rng.random((2, robots)), heading)
+        for k in range(3):
+            w.add_message(metrics, k * 20_000_000, json.dumps({"t": k * 0.02}).encode(), 0)
+        many = poses_message(0.0, np.zeros((2, huge)), np.vstack([np.ones(huge), np.zeros(huge)]))
+        w.add_message(poses, 0, many, 0)
+        for k in range(1, repeats + 1):
+            w.add_message(poses, k * 1000, one, k * 1000)
+        w.finish()
+    return path
+
+
+def test_a_log_claiming_more_poses_than_its_robots_and_steps_is_read_within_them(tmp_path):
+    path = forge(tmp_path / "run.mcap", CONFIG, repeats=1000, huge=100 * ROBOTS)
+    assert path.stat().st_size < 200_000  # 220 000 poses claimed
+    tracemalloc.start()
+    try:
+        with pytest.warns(LogWarning, match="more than the log's config allows"):
+            run = load_run(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert len(run.poses) <= 3 + 2 and all(p.shape == (ROBOTS, 3) for p in run.poses)
+    assert "messages beyond its 5 steps" in run.recovery
+    assert "too large for 200 robots" in run.recovery  # the huge one, never parsed
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB to read a log of {path.stat().st_size} bytes"
+    assert run.metrics["t"].size == 3  # the rest of the log is read
+
+
+def test_a_log_without_a_config_record_is_bounded_by_its_size(tmp_path):
+    path = forge(tmp_path / "run.mcap", None, repeats=200, huge=ROBOTS, robots=5000, chunk=1 << 27)
+    size = path.stat().st_size
+    with pytest.warns(LogWarning, match="points per byte"):
+        run = load_run(path)
+    assert sum(p.shape[0] for p in run.poses) <= 4 * size
+
+
+def test_a_log_within_its_config_is_read_whole_without_a_warning(tmp_path):
+    path = forge(tmp_path / "run.mcap", CONFIG, repeats=2, huge=ROBOTS)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LogWarning)
+        run = load_run(path)
+    assert len(run.poses) == 3 and run.recovery is None, run.recovery
+
+
+def test_figures_decode_no_poses(tmp_path, monkeypatch):
+    from analysis import figures, load
+    from harness import api
+
+    log = api.run(["+experiment=smoke", "plant=unicycles", "sim.t_final=0.2"], tmp_path / "r")
+    assert len(log.poses) > 0
+    parsed = []
+
+    class Counting:
+        @staticmethod
+        def FromString(data):
+            parsed.append(len(data))
+            return PosesInFrame.FromString(data)
+
+    monkeypatch.setattr(load, "PosesInFrame", Counting)
+    assert figures.main([str(tmp_path / "r"), "--out", str(tmp_path / "f"), "--no-gif"]) == 0
+    assert parsed == []
