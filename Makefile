@@ -20,13 +20,17 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP) ## Create .venv and install the project with its dev tools
 
+# the tests on every core, at most 4 processes (pytest-xdist; tests/conftest.py gives each
+# its own floor cache and one numba thread per core it has); PYTEST_WORKERS= runs them serially
+PYTEST_WORKERS ?= --numprocesses=auto --maxprocesses=4 --durations=20
+
 test: $(STAMP) ## Static checks (ruff, mypy), the documentation build and the tests (not the slow ones)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .
 	$(PY) -m mypy
 	$(MAKE) --no-print-directory docs
 	scripts/viewer_deps.sh  # chromium and viewer/node_modules for tests/test_viewer.py; never fails
-	$(PY) -m pytest
+	$(PY) -m pytest $(PYTEST_WORKERS)
 
 test-slow: $(STAMP) ## Run only the slow tests
 	$(PY) -m pytest -m slow -rP
@@ -51,7 +55,7 @@ docs: $(STAMP) ## Build the documentation site into build/docs/html (warnings ar
 	$(PY) -m sphinx -b html -E -n -W --keep-going -q docs $(DOCS_DIR)
 	@echo "docs: $(DOCS_DIR)/index.html"
 
-BENCHMARKS := "benchmarks.suite" "benchmarks.numerics" "benchmarks.distributed --app" \
+BENCHMARKS := "benchmarks.suite" "benchmarks.numerics" "benchmarks.distributed --app" "benchmarks.jobs" \
 	"benchmarks.laws" "benchmarks.robots"
 BENCH_FIGURES := build/bench/figures.jsonl
 
