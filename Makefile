@@ -21,7 +21,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP) ## Create .venv and install the project with its dev tools
 
 # the tests on every core, at most 4 processes (pytest-xdist; tests/conftest.py gives each
-# its own floor cache and one numba thread per core it has); PYTEST_WORKERS= runs them serially
+# worker its share of the cores for the compiled loops); PYTEST_WORKERS= runs them serially
 PYTEST_WORKERS ?= --numprocesses=auto --maxprocesses=4 --durations=20
 
 test: $(STAMP) ## Static checks (ruff, mypy), the documentation build and the tests (not the slow ones)

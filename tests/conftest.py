@@ -23,6 +23,23 @@ from harness.targets.densities import DEFAULT_TARGET, Target
 # record. tests/test_floor_cache.py gives the cache a directory of its own.
 os.environ["DENSITYLOOP_FLOOR_CACHE"] = ""
 
+
+def _share_the_cores() -> None:
+    """Under pytest-xdist, each worker's compiled loops get its share of the cores: ``W``
+    workers each running ``C`` threads on ``C`` cores would make every parallel loop wait
+    for descheduled threads. (``NUMBA_NUM_THREADS`` itself is left alone: numba refuses
+    a change of it once its threads run, and the tests compare thread counts up to it.)"""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers <= 1:
+        return
+    import numba
+
+    share = max(1, (os.cpu_count() or 1) // workers)
+    numba.set_num_threads(min(share, numba.config.NUMBA_NUM_THREADS))
+
+
+_share_the_cores()
+
 GROUPS = ("plant", "estimator", "control", "target", "init", "experiment")
 SMOKE = (
     "grid.n=12",
