@@ -77,7 +77,8 @@ DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-"""Signals that stop a run between steps with status ``aborted``."""
+"""Signals that stop a run with status ``aborted``: between steps, and between the draws
+of the finite-N floors (:class:`StopRequest`)."""
 
 
 class DiskFull(RuntimeError):
