@@ -65,7 +65,10 @@ class RunContext:
     theory: dict[str, str] = field(default_factory=dict)
     publishers: list[Any] = field(default_factory=list)
     exclusive: bool = True
-    window: Callable[[], AbstractContextManager[object]] = nullcontext
+    # a factory, so that no class attribute holds nullcontext (the reference would list it)
+    window: Callable[[], AbstractContextManager[object]] = field(
+        default_factory=lambda: nullcontext
+    )
 
 
 @dataclass(frozen=True)
