@@ -209,3 +209,38 @@ def test_sigterm_to_a_sweep_while_its_floors_compute_aborts_every_job(tmp_path):
     assert [r["state"] for r in rows] == ["aborted", "aborted"], rows
     for job in {p.parent for p in tmp_path.glob("*/run.mcap")}:
         assert "SIGTERM" in aborted_log(job)
+
+
+STUBBORN_JOB = """
+import signal, sys, time
+seen = []
+def on_signal(signum, frame):
+    seen.append(signum)
+    if len(seen) == 2:  # a run stops inside a long computation on the second request
+        sys.exit(0)
+signal.signal(signal.SIGTERM, on_signal)
+print("ready", flush=True)
+while True:
+    time.sleep(0.01)
+"""
+
+
+def test_a_job_that_does_not_stop_on_the_first_signal_is_sent_a_second(tmp_path):
+    """A job inside a computation longer than the grace (a long step) stops on the
+    second request: the sweep sends it one rather than wait out its 30 s."""
+    from harness.runs.status import write_status
+    from harness.runs.supervision import stop_jobs
+
+    job = subprocess.Popen([sys.executable, "-c", STUBBORN_JOB], stdout=subprocess.PIPE, text=True)
+    try:
+        assert job.stdout is not None and job.stdout.readline().strip() == "ready"
+        (tmp_path / "job").mkdir()
+        write_status(tmp_path / "job", state="running", pid=job.pid)
+        start = time.monotonic()
+        stop_jobs(tmp_path, signal.SIGTERM, wait_s=15)
+        took = time.monotonic() - start
+        assert job.wait(timeout=1) == 0, "the job was never sent a second signal"
+        assert took < 8, f"the job stopped {took:.1f} s after the first signal"
+    finally:
+        job.kill()
+        job.wait()
