@@ -45,7 +45,7 @@ from threadpoolctl import ThreadpoolController
 
 from harness.fokker_planck import FokkerPlanck, NumericalError
 from harness.grid import Grid
-from harness.observers.base import Observer
+from harness.observers.base import Observer, computes
 from harness.plants.limit import Limit
 from harness.protocols import Control, Estimator, Identity, Plant, headings, observed
 from harness.records import Command, ControlInput, Estimate, Measurement, StepInput, StepRecord
@@ -241,9 +241,10 @@ def trajectory(
         exp: The experiment; it runs once (its components keep their state).
         observers: Observers already initialised (``initialize``), handed each step's
             record in this order; the caller finalises them.
-        window: A context manager entered around the loop's own computation of each
-            step (not the observers'), for example to let signals interrupt it; it may
-            raise to stop before the step.
+        window: A context manager entered around each step's computation: the loop's
+            own and that of the observers that only compute, from the first up to the
+            first that writes or shows (the logger is never inside); for example to let
+            signals interrupt it. It may raise to stop before the step.
         hold: Keep those guards from the first step to the last, the caller's code
             between steps included: for a caller that does nothing there (a run, a
             benchmark), which then saves entering them at every step (tens of
@@ -268,12 +269,26 @@ def trajectory(
     exp.spent.append(True)
     loop = ClosedLoop(exp, np.random.default_rng(exp.seed))
     blas = ThreadpoolController()
+    inside = _computing_prefix(observers)
     with computing(blas) if hold else nullcontext():
         for n in range(exp.steps + 1):
             with nullcontext() if hold else computing(blas):
+                values: Values = {}
                 with window():
                     rec = loop.start() if n == 0 else loop.step()
-                values: Values = {}
-                for observer in observers:
+                    for observer in observers[:inside]:
+                        observer.handle(rec, values)
+                for observer in observers[inside:]:
                     observer.handle(rec, values)
             yield rec, values
+
+
+def _computing_prefix(observers: Sequence[Observer]) -> int:
+    """How many of ``observers``, from the first, only compute
+    (:func:`harness.observers.base.computes`): those :func:`trajectory` hands each record
+    inside its window, before the first that writes or shows.
+    """
+    for i, observer in enumerate(observers):
+        if not computes(observer):
+            return i
+    return len(observers)

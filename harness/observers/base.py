@@ -31,6 +31,8 @@ constructor may name (the builder passes the ones it names): ``grid``, ``target`
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
@@ -51,12 +53,22 @@ class RunContext:
         exclusive: Whether the log must be a new file (created exclusively: an
             existing one, even one another process created a moment before, is refused
             by the open itself); False replaces it.
+        window: The window in which a stop request is honoured: an observer enters it
+            around each piece of a long computation (each draw of the finite-N floors),
+            and it raises to stop the run when a stop was requested (SIGINT, SIGTERM or
+            SIGHUP), or at once on a second request while inside. A run's is its stop
+            request's (:meth:`harness.runs.run.StopRequest.window`); by default it does
+            nothing.
     """
 
     out_dir: Path
     theory: dict[str, str] = field(default_factory=dict)
     publishers: list[Any] = field(default_factory=list)
     exclusive: bool = True
+    # a factory, so that no class attribute holds nullcontext (the reference would list it)
+    window: Callable[[], AbstractContextManager[object]] = field(
+        default_factory=lambda: nullcontext
+    )
 
 
 @dataclass(frozen=True)

@@ -30,11 +30,18 @@ covers) gets no key and is never cached.
 with the floors as the ``theory`` record's strings (``repr`` of each float), so a floor
 read back is bit-identical to the one computed. A file is written whole or not at all
 (a temporary file in the same directory, ``fsync``, ``os.replace``), so jobs that
-compute the same floor at once both succeed and leave one whole file. A file is used
-only when it parses, its inputs equal the requested ones, its key is theirs and the
-checksum matches its floors; otherwise a :class:`FloorCacheWarning` says why, and the
-floors are computed and the file rewritten. A directory that cannot be read or written
-costs a warning and the computation, never the run. JSON only, never a deserialiser that runs code.
+compute the same floor at once both succeed and leave one whole file; it replaces
+only a regular file (a FIFO, a device, a directory or a symbolic link at its name is
+left alone and never written into). A file is read through :mod:`harness.files`: only
+a regular file, opened without blocking, at most :data:`RECORD_BYTES`. It is used only
+when it parses, its inputs equal the requested ones, its key is theirs, the checksum
+matches its floors and the floors are what the computation gives (:func:`floor_problem`:
+the keys of :data:`FLOOR_KEYS`, finite numbers ``>= 0`` in their shortest round-trip
+form, the requested draws and transport method); otherwise a :class:`FloorCacheWarning`
+says why, and the floors are computed and the file rewritten. Floors that are not what
+the computation gives are never stored. A file or directory that cannot be read or
+written costs a warning and the computation, never the run. JSON only, never a
+deserialiser that runs code.
 """
 
 from __future__ import annotations
@@ -44,7 +51,9 @@ import dataclasses
 import hashlib
 import importlib.metadata
 import json
+import math
 import os
+import stat
 import tempfile
 import warnings
 from collections.abc import Callable
@@ -54,6 +63,7 @@ from typing import Any
 import numpy as np
 
 from harness.estimators.kde import KDE
+from harness.files import UnreadableFile, read_bytes
 from harness.grid import Grid
 from harness.targets.densities import Box, GaussianMixture, Target, Uniform
 
@@ -76,6 +86,28 @@ PACKAGES = ("numpy", "scipy", "pot", "numba")
 
 SOURCES = ("computed", "cache")
 """Values of the ``theory`` record's ``swarm_floor_source``."""
+
+
+BANDS = ("swarm_l2", "swarm_w2")
+"""The distances whose floors are stored (:func:`harness.observers.swarm_metrics.floors`)."""
+
+
+BAND_NUMBERS = ("mean", "lo", "hi")
+"""The numbers of a floor's band (:class:`harness.observers.swarm_metrics.Band`): the
+mean and the 2.5 and 97.5 percentiles of a distance, each finite and ``>= 0``."""
+
+
+FLOOR_KEYS = frozenset(
+    {"swarm_w2_method"}
+    | {f"{band}_floor_{field}" for band in BANDS for field in (*BAND_NUMBERS, "draws")}
+)
+"""The keys of a stored record's floors: the transport method, and for each distance
+its band and its number of draws."""
+
+
+RECORD_BYTES = 1 << 20
+"""Largest cache file read (bytes); a record is about 2 kB. A larger file is never
+loaded: it costs a warning and the computation."""
 
 
 class FloorCacheWarning(UserWarning):
@@ -242,19 +274,21 @@ class FloorCache:
     def get(self, inputs: dict[str, Any]) -> dict[str, str] | None:
         """The stored floors of ``inputs``, or None when there are none to trust.
 
-        A missing file (or directory) is a plain miss. A file that does not parse, holds
-        other inputs or another key, or whose checksum does not match its floors, is
-        ignored with a :class:`FloorCacheWarning` (the caller recomputes and :meth:`put`
-        replaces it).
+        A missing file (or directory) is a plain miss. A file that is not a regular
+        file or is larger than :data:`RECORD_BYTES` (neither is read), that does
+        not parse, holds other inputs or another key, whose checksum does not match its
+        floors, or whose floors are not what the computation gives
+        (:func:`floor_problem`), is ignored with a :class:`FloorCacheWarning` (the
+        caller recomputes and :meth:`put` replaces a regular file).
         """
         key = floor_key(inputs)
         path = self.path(key)
         try:
-            data = path.read_bytes()
-        except (FileNotFoundError, NotADirectoryError):
-            return None
-        except OSError as err:
-            self._warn(f"cannot read {path} ({err}); computing the floors")
+            data = read_bytes(path, RECORD_BYTES)
+        except UnreadableFile as err:
+            if not os.path.lexists(path):
+                return None  # a plain miss (no file, or no directory)
+            self._warn(f"cannot read {err}; computing the floors")
             return None
         record, reason = _trusted(data, key, inputs)
         if record is None:
@@ -267,13 +301,29 @@ class FloorCache:
         """Store ``floors`` (the ``theory`` record's strings) under the key of ``inputs``:
         written whole to a temporary file in the directory, flushed to disk and renamed
         over ``<key>.json`` (atomic on POSIX), so a reader never sees a partial file and
-        concurrent writers of one key both succeed.
+        concurrent writers of one key both succeed. Only a regular file at that name is
+        replaced; floors that are not what the computation gives
+        (:func:`floor_problem`) are not stored.
 
         Returns:
-            The file, or None when it could not be written (a
-            :class:`FloorCacheWarning` says why; the run goes on).
+            The file, or None when it was not written (a :class:`FloorCacheWarning`
+            says why; the run goes on).
         """
         key = floor_key(inputs)
+        path = self.path(key)
+        problem = floor_problem(floors, inputs)
+        if problem:
+            self._warn(f"not storing the floors of {path}: {problem}")
+            return None
+        try:
+            mode: int | None = os.lstat(path).st_mode
+        except OSError:
+            mode = None  # nothing there yet (or no directory: the write says why)
+        if mode is not None and not stat.S_ISREG(mode):
+            self._warn(
+                f"not replacing {path}: not a regular file; the floors were computed, not stored"
+            )
+            return None
         record = {
             "key": key,
             "inputs": inputs,
@@ -281,7 +331,6 @@ class FloorCache:
             "checksum": digest(canonical(floors)),
         }
         text = json.dumps(record, indent=1, allow_nan=False) + "\n"
-        path = self.path(key)
         tmp: str | None = None
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
@@ -307,15 +356,48 @@ class FloorCache:
         warnings.warn(f"floor cache: {message}", FloorCacheWarning, stacklevel=3)
 
 
+def floor_problem(floors: object, inputs: dict[str, Any]) -> str:
+    """What makes ``floors`` other than the computation of ``inputs`` gives, in words
+    (empty when nothing does): a mapping of strings with exactly the keys
+    :data:`FLOOR_KEYS`; the transport method of the inputs' measure; each distance's
+    draws the inputs' ``draws``; each number of :data:`BAND_NUMBERS` finite, ``>= 0``
+    and written as its shortest round-trip ``repr``.
+    """
+    if not isinstance(floors, dict) or not all(isinstance(v, str) for v in floors.values()):
+        return "the floors are not a mapping of strings"
+    if set(floors) != FLOOR_KEYS:
+        missing, extra = sorted(FLOOR_KEYS - set(floors)), sorted(set(floors) - FLOOR_KEYS)
+        keys = f"missing {missing}, extra {extra}"[:200]
+        return f"the floors' keys are not the computation's ({keys})"
+    measure = inputs.get("measure")
+    method = measure.get("method") if isinstance(measure, dict) else None
+    if method is not None and floors["swarm_w2_method"] != method:
+        return f"the transport method is {floors['swarm_w2_method'][:20]!r}, not {method!r}"
+    for band in BANDS:
+        if floors[f"{band}_floor_draws"] != str(inputs.get("draws")):
+            draws = floors[f"{band}_floor_draws"][:20]
+            return f"the {band} floor has {draws!r} draws, not {inputs.get('draws')}"
+        for number in BAND_NUMBERS:
+            text = floors[f"{band}_floor_{number}"]
+            try:
+                value = float(text)
+            except ValueError:
+                value = math.nan
+            if not (math.isfinite(value) and value >= 0 and repr(value) == text):
+                return f"{band}_floor_{number} is {text[:40]!r}, not a finite number >= 0"
+    return ""
+
+
 def _trusted(data: bytes, key: str, inputs: dict[str, Any]) -> tuple[dict[str, Any] | None, str]:
     """The stored record in ``data`` when it is the floor of ``inputs`` under ``key``
-    (UTF-8 JSON, the four fields, the same key and inputs, floors a mapping of strings
-    whose checksum matches); else None and why not.
+    (UTF-8 JSON, the four fields, the same key and inputs, a checksum that matches the
+    floors, floors the computation could give: :func:`floor_problem`); else None and
+    why not.
     """
     try:
         record = json.loads(data.decode("utf-8"))
-    except ValueError as err:  # UnicodeDecodeError and JSONDecodeError
-        return None, f"not JSON ({err})"
+    except (ValueError, RecursionError) as err:  # UnicodeDecodeError, JSONDecodeError, depth
+        return None, f"not JSON ({type(err).__name__})"
     if not isinstance(record, dict) or set(record) != {"key", "inputs", "floors", "checksum"}:
         return None, "not a floor record"
     if record["key"] != key:
@@ -326,12 +408,13 @@ def _trusted(data: bytes, key: str, inputs: dict[str, Any]) -> tuple[dict[str, A
     except (TypeError, ValueError):
         return None, "its inputs are not plain JSON"
     floors = record["floors"]
-    if not (
-        isinstance(floors, dict) and floors and all(isinstance(v, str) for v in floors.values())
-    ):
-        return None, "its floors are not a mapping of strings"
+    if not (isinstance(floors, dict) and all(isinstance(v, str) for v in floors.values())):
+        return None, "the floors are not a mapping of strings"
     if record["checksum"] != digest(canonical(floors)):
         return None, "the checksum does not match its floors"
+    problem = floor_problem(floors, inputs)
+    if problem:
+        return None, problem
     return record, ""
 
 

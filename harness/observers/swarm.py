@@ -31,6 +31,9 @@ Which keys the log carries, and in which order, is the log's contract
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
+
 import numpy as np
 
 from harness.estimators.kde import KDE
@@ -197,7 +200,8 @@ class SwarmTruth:
     def handle(self, rec: StepRecord, values: dict[str, float | None]) -> None:
         """The step's swarm metrics; at the start, the floors for its robots."""
         if rec.step == 0 and rec.positions is not None and self.run is not None:
-            self.run.theory.update(self.floor_record(rec.positions.shape[1]))
+            floors = self.floor_record(rec.positions.shape[1], self.run.window)
+            self.run.theory.update(floors)
         values.update(self(rec))
 
     def finalize(self, status: Status) -> None:
@@ -255,14 +259,19 @@ class SwarmTruth:
             seed=self.floor_seed(),
         )
 
-    def floor_record(self, n_robots: int) -> dict[str, str]:
+    def floor_record(
+        self,
+        n_robots: int,
+        window: Callable[[], AbstractContextManager[object]] = nullcontext,
+    ) -> dict[str, str]:
         """The ``theory`` record's floors for ``n_robots`` robots (:meth:`floors`, drawn
         from ``default_rng([seed, 2])``), read from the floor cache when it holds them
         for the same content, else computed and stored there; with
         ``swarm_floor_source`` (``computed`` | ``cache``) and, when the target has a
         content key, ``swarm_floor_key`` (the SHA-256 of the inputs,
         :func:`harness.observers.floor_cache.floor_key`). Empty when the target has no continuous
-        density to sample.
+        density to sample. ``window`` is entered around each draw (the run's stop
+        window, :attr:`harness.observers.base.RunContext.window`).
         """
         if self.target.density is None:
             return {}
@@ -270,7 +279,7 @@ class SwarmTruth:
 
         def compute() -> dict[str, str]:
             rng = np.random.default_rng(self.floor_seed())
-            return self.floors(n_robots, rng, self.floor_draws)
+            return self.floors(n_robots, rng, self.floor_draws, window)
 
         found, source = floor_cache.cached(self.cache, inputs, compute)
         out = {**found, "swarm_floor_source": source}
@@ -278,11 +287,18 @@ class SwarmTruth:
             out["swarm_floor_key"] = floor_cache.floor_key(inputs)
         return out
 
-    def floors(self, n_robots: int, rng: np.random.Generator, draws: int) -> dict[str, str]:
+    def floors(
+        self,
+        n_robots: int,
+        rng: np.random.Generator,
+        draws: int,
+        window: Callable[[], AbstractContextManager[object]] = nullcontext,
+    ) -> dict[str, str]:
         """The finite-N floors of ``swarm_l2`` and ``swarm_w2`` for ``n_robots`` robots,
         as string values for the ``theory`` record: mean, 2.5 and 97.5 percentiles and
         the number of Monte-Carlo draws (:func:`harness.observers.swarm_metrics.floors`), and the
-        transport method. Empty when the target has no continuous density to sample.
+        transport method; ``window`` entered around each draw. Empty when the target has
+        no continuous density to sample.
         """
         density = self.target.density
         if density is None:
@@ -296,6 +312,7 @@ class SwarmTruth:
             n_robots,
             rng,
             draws=draws,
+            window=window,
         )
         out = {"swarm_w2_method": w2_method(n_robots)}
         for name, band in bands.items():

@@ -50,6 +50,7 @@ steps; ``swarm_w2`` does not (a 10^4-step run would spend 10^3 calls): log it ev
 from __future__ import annotations
 
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -284,6 +285,7 @@ def floors(
     draws: int = 100,
     w2: str = "auto",
     n_projections: int = N_PROJECTIONS,
+    window: Callable[[], AbstractContextManager[object]] = nullcontext,
 ) -> dict[str, Band]:
     """Finite-N floors: ``swarm_l2`` and ``swarm_w2`` of N robots drawn from ``p_*``.
 
@@ -301,6 +303,9 @@ def floors(
         draws: Monte-Carlo count.
         w2: Transport method (``auto``: :func:`w2_method` of ``n_robots``).
         n_projections: For the sliced method.
+        window: Entered around each draw: a run's stop window
+            (:attr:`harness.observers.base.RunContext.window`), which raises to stop
+            between draws when a stop was requested.
 
     Returns:
         ``{"swarm_l2": Band, "swarm_w2": Band}``.
@@ -311,7 +316,8 @@ def floors(
     w = np.empty(draws)
     with threadpool_limits(1):  # small BLAS calls on many threads stall on a busy host
         for i in range(draws):
-            x = density.sample(n_robots, grid, rng)
-            l2[i] = swarm_l2(x, kde, smoothed_target, grid)
-            w[i] = swarm_w2(x, target, w2, n_projections)
+            with window():
+                x = density.sample(n_robots, grid, rng)
+                l2[i] = swarm_l2(x, kde, smoothed_target, grid)
+                w[i] = swarm_w2(x, target, w2, n_projections)
     return {"swarm_l2": _band(l2), "swarm_w2": _band(w)}

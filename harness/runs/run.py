@@ -77,7 +77,8 @@ DISK_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-"""Signals that stop a run between steps with status ``aborted``."""
+"""Signals that stop a run with status ``aborted``: between steps, and between the draws
+of the finite-N floors (:class:`StopRequest`)."""
 
 
 class DiskFull(RuntimeError):
@@ -92,37 +93,45 @@ def is_numerical(err: BaseException) -> bool:
 
 
 class StopRequest:
-    """Signal handler of a run: SIGINT, SIGTERM and SIGHUP ask the loop to stop between
-    steps. A second signal stops at once, but only while a step is computing
-    (``interruptible``): never inside the logger or the log's finalisation, so a burst
+    """Signal handler of a run: SIGINT, SIGTERM and SIGHUP ask the run to stop at the
+    next entry of its :meth:`window` (between steps, and between the draws of the
+    finite-N floors). A second signal stops at once, but only inside the window (while
+    the harness computes): never inside the logger or the log's finalisation, so a burst
     of signals cannot leave the log unfinalised.
     """
 
     def __init__(self) -> None:
         self.signals: list[int] = []
         self.interruptible = False
+        self.interrupted = False
         self._previous: dict[int, Any] = {}
 
     def __call__(self, signum: int, frame: Any) -> None:
-        """Record the signal; raise KeyboardInterrupt on a repeat during a step."""
+        """Record the signal; raise KeyboardInterrupt on a repeat inside the window
+        (once: later signals are only recorded).
+        """
         self.signals.append(signum)
         if len(self.signals) > 1 and self.interruptible:
             self.interruptible = False
+            self.interrupted = True
             raise KeyboardInterrupt(f"second signal {signal.Signals(signum).name}")
 
     @contextmanager
     def window(self) -> Iterator[None]:
-        """Around one step's computation (:func:`harness.loop.trajectory`): stop before
-        it when a signal came (:class:`Terminated`); while it computes, a second signal
-        stops at once.
+        """Around a piece of computation (a step and the observers that compute,
+        :func:`harness.loop.trajectory`; a draw of the floors,
+        :attr:`harness.observers.base.RunContext.window`): stop before it when a signal
+        came (:class:`Terminated`); while it computes, a second signal stops at once.
+        Windows nest: leaving an inner one keeps the outer one open.
         """
         if self.signals:
             raise Terminated(self.reason)
+        outer = self.interruptible
         self.interruptible = True
         try:
             yield
         finally:
-            self.interruptible = False
+            self.interruptible = outer and not self.interrupted
 
     @property
     def reason(self) -> str:
@@ -251,7 +260,7 @@ def _run(exp: Experiment, out_dir: Path, stop: StopRequest, exclusive: bool) -> 
     (:func:`harness.loop.trajectory`), the observers finalised whatever happens (so the
     log always is); the log created exclusively when ``exclusive``.
     """
-    context = RunContext(out_dir, exclusive=exclusive)
+    context = RunContext(out_dir, exclusive=exclusive, window=stop.window)
     state, reason, done = "aborted", "", 0
     last: dict[str, float | None] = {}
     disk_error: OSError | None = None

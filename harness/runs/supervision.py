@@ -285,15 +285,24 @@ def running_jobs(sweep_dir: Path) -> list[int]:
     return pids
 
 
-def stop_jobs(sweep_dir: Path, signum: int, wait_s: float = 30.0) -> None:
+def stop_jobs(sweep_dir: Path, signum: int, wait_s: float = 30.0, again_s: float = 5.0) -> None:
     """Send ``signum`` to every running job of the sweep and wait (up to ``wait_s``)
-    for them to finalise their logs.
+    for them to finalise their logs. A job still running ``again_s`` after the signal is
+    sent it a second time: a run stops at its next step or draw of its floors on the
+    first, and at once, inside a long computation, on the second
+    (:class:`~harness.runs.run.StopRequest`); either way it finalises its log.
     """
     pids = running_jobs(sweep_dir)
     for pid in pids:
         with contextlib.suppress(OSError):
             os.kill(pid, signum)
-    deadline = time.monotonic() + wait_s
-    while pids and time.monotonic() < deadline:
+    start = time.monotonic()
+    repeated = False
+    while pids and time.monotonic() < start + wait_s:
         pids = [p for p in pids if alive(p)]
+        if pids and not repeated and time.monotonic() >= start + again_s:
+            repeated = True
+            for pid in pids:
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signum)
         time.sleep(0.05)
