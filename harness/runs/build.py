@@ -28,7 +28,7 @@ from omegaconf.errors import OmegaConfBaseException
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.loop import Experiment
-from harness.observers.base import Observer
+from harness.observers.base import Observer, gives, needs
 from harness.parameters import Incompatible, ParameterError
 from harness.plants.limit import Limit
 from harness.protocols import Control, Estimator, Plant, check_parts, follows_moving_target
@@ -270,7 +270,34 @@ def observers(
         except Exception:
             target = None  # component() names the unloadable target
         out[name] = component(cfg, group, values, **_named(target, runtime))
+    _check_needs(cfg, out)
     return out
+
+
+def _check_needs(cfg: DictConfig, watching: dict[str, Observer]) -> None:
+    """Every metric an observer needs (:func:`harness.observers.base.needs`: the guard's
+    ``required``) is given by an observer before it (:func:`~harness.observers.base.gives`);
+    not checked past an observer that computes without saying what it gives.
+
+    Raises:
+        ConfigError: naming the parameter that names a metric no observer before gives.
+    """
+    given: set[str] = set()
+    for name, observer in watching.items():
+        for param, names in needs(observer).items():
+            missing = [m for m in names if m not in given]
+            if missing:
+                before = ", ".join(list(watching)[: list(watching).index(name)]) or "none"
+                raise ConfigError(
+                    public_key(cfg, f"observers.{name}", param),
+                    list(names),
+                    f"metrics that the observers before {name} ({before}) give "
+                    f"(none gives {', '.join(missing)})",
+                )
+        more = gives(observer)
+        if more is None:
+            return  # what follows may need what this one gives: not known here
+        given |= more
 
 
 def resolve(cfg: DictConfig) -> dict[str, Any]:
