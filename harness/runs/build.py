@@ -31,7 +31,17 @@ from harness.loop import Experiment
 from harness.observers.base import Observer, gives, needs
 from harness.parameters import Incompatible, ParameterError
 from harness.plants.limit import Limit
-from harness.protocols import Control, Estimator, Plant, check_parts, follows_moving_target
+from harness.plants.link import whole_steps
+from harness.protocols import (
+    SHARED_QUANTITIES,
+    Control,
+    Estimator,
+    Plant,
+    check_parts,
+    copies,
+    follows_moving_target,
+    period,
+)
 from harness.runs.checks import (
     SHARED_BLOCKS,
     ConfigError,
@@ -347,6 +357,54 @@ def _on_path(cfg: DictConfig, density: Density, grid: Grid) -> Density:
     return density
 
 
+COPY_TOLERANCE = 1e-9
+"""Relative difference below which a component's copy of a shared quantity is that
+quantity (the rounding of a decimal value written twice)."""
+
+
+def _check_copies(cfg: DictConfig, parts: dict[str, Any]) -> None:
+    """Each component's copy of a shared quantity (:func:`harness.protocols.copies`: the
+    filters' ``robots``, a plant's ``dt``) equals the run's own (``agents.n``, ``sim.dt``).
+
+    A copy is an interpolation (``robots: ${agents.n}``) in the component's YAML; an
+    override of the copy alone would make the component compute with a number the rest of
+    the run, and the log's shared keys, do not have (the filters' noise constants of 5
+    robots for a swarm of 200, a link counting its period in steps of 0.04 s while the
+    loop steps 0.02 s).
+
+    Raises:
+        ConfigError: naming the copy's key, for one that differs.
+    """
+    for group, part in parts.items():
+        for param, (quantity, value) in copies(part).items():
+            shared, unit, what = SHARED_QUANTITIES[quantity]
+            truth = float(OmegaConf.select(cfg, shared))
+            if abs(float(value) - truth) > COPY_TOLERANCE * max(abs(truth), 1.0):
+                raise ConfigError(
+                    public_key(cfg, group, param),
+                    value,
+                    f"{shared} = {truth:g}{unit}, {what}, of which {group}.{param} is a copy "
+                    f"(set {shared} instead)",
+                )
+
+
+def _check_period(cfg: DictConfig, control: Control) -> None:
+    """The period of a law that decides once per period (:func:`harness.protocols.period`)
+    is a whole number of steps of ``sim.dt``, as ``link.period`` must be
+    (:func:`harness.plants.link.whole_steps`); a law never rounds it.
+
+    Raises:
+        ConfigError: naming the law's ``period`` key.
+    """
+    every = period(control)
+    if every is None:
+        return
+    try:
+        whole_steps("period", every, float(cfg.sim.dt), 1)
+    except ParameterError as err:
+        raise ConfigError(public_key(cfg, "control", "period"), err.value, err.allowed) from None
+
+
 def _check_follows(target: Target, control: Control) -> None:
     """Refuse a law that cannot follow a moving target
     (:func:`harness.protocols.follows_moving_target`) when the target moves.
@@ -365,8 +423,10 @@ def build(cfg: DictConfig) -> Experiment:
     In order: every interpolation resolves, every key is read by something, the
     shared blocks, the memory the run will need (estimated from the components'
     parameters before any of them allocates), the components, each component's own
-    check of the others, the loop's ``N -> infinity`` limit, the step bound, the
-    observers and the run's identity.
+    check of the others, the loop's ``N -> infinity`` limit, the step bound, each
+    component's copies of the shared quantities (``agents.n``, ``sim.dt``), a periodic
+    law's period in whole steps, the observers (each metric one needs given by one
+    before it) and the run's identity.
     Building draws no random numbers (robots are placed by ``plant.start(rng)``),
     writes nothing and opens nothing (observers open files and ports when the run
     starts).
@@ -390,6 +450,8 @@ def build(cfg: DictConfig) -> Experiment:
     _check_parts(plant, estimator, control)
     limit = _limit(plant, control, grid, model, init)
     check_built(cfg, grid, target, control, plant, estimator)
+    _check_copies(cfg, {"plant": plant, "estimator": estimator, "control": control})
+    _check_period(cfg, control)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
     identity = RunIdentity(data, int(cfg.seed), choices(cfg))
     watching = observers(
