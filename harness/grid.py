@@ -45,7 +45,9 @@ class Grid:
                 raise ValueError(f"Grid.{name} must be an integer >= 4, got {value!r}")
         for name in ("x0", "x1", "y0", "y1"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            if isinstance(value, bool) or not isinstance(
+                value, (int, float, np.integer, np.floating)
+            ):
                 raise ValueError(f"Grid.{name} must be a number, got {value!r}")
             # the bounds reach compiled code, which is typed by its arguments: floats only
             object.__setattr__(self, name, float(value))

@@ -78,7 +78,7 @@ from harness.estimators.kde import binning_nodes
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import number, require
-from harness.protocols import Control
+from harness.protocols import Control, MemoryEstimate, default_memory
 from harness.records import ControlInput, Estimate
 from harness.targets.densities import Target
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
@@ -142,6 +142,47 @@ def check_length(grid: Grid, length: float) -> float:
         f"a number in (0, {side / LENGTH_PER_SIDE:g}] (the domain side over {LENGTH_PER_SIDE:g})",
     )
     return value
+
+
+FINE_CELL_BYTES = 64
+"""Bytes per cell of the target's fine grid (:func:`fine_target`, :data:`TARGET_REFINEMENT`
+cells per binning interval and axis) that a kernel law holds at its peak while it is
+built: eight float64 arrays of that grid (measured with ``tracemalloc``: 49 bytes a cell
+for ``svgd``, whose spline of ``log p_*`` adds its coefficients, 40 for ``mmd``)."""
+
+
+NODE_BYTES = 96
+"""Bytes per binning node (``(Bx + 1) (By + 1)``) and per node-to-point kernel entry:
+twelve float64 arrays (the weights, the scores at the nodes and their meshgrids; the
+six 1-D kernels of :meth:`Nodes` to the cell centres and their temporaries)."""
+
+
+def kernel_memory(grid: Grid, length: object, bin_factor: object) -> MemoryEstimate:
+    """What a kernel law of ``length`` and ``bin_factor`` allocates, before it is built:
+    the grid arrays (:func:`~harness.protocols.default_memory`), the target on the fine grid
+    of :data:`TARGET_REFINEMENT` sub-cells per binning interval (:data:`FINE_CELL_BYTES`
+    a cell, most of it for a large ``bin_factor``) and the nodes with their kernels
+    (:data:`NODE_BYTES`); named by ``bin_factor``. Parameters the law would refuse give
+    the grid arrays only (the law refuses them when it is built).
+    """
+    base = default_memory(grid).nbytes
+    ok = (
+        isinstance(length, (int, float))
+        and not isinstance(length, bool)
+        and math.isfinite(length)
+        and length > 0
+        and isinstance(bin_factor, int)
+        and not isinstance(bin_factor, bool)
+        and bin_factor >= 1
+    )
+    if not ok:
+        return MemoryEstimate(base, "")
+    assert isinstance(length, (int, float)) and isinstance(bin_factor, int)
+    bx = binning_nodes(grid.nx, grid.x1 - grid.x0, float(length), bin_factor)
+    by = binning_nodes(grid.ny, grid.y1 - grid.y0, float(length), bin_factor)
+    fine = TARGET_REFINEMENT**2 * bx * by * FINE_CELL_BYTES
+    nodes = ((bx + 1) * (by + 1) + (bx + 1) * grid.nx + (by + 1) * grid.ny) * NODE_BYTES
+    return MemoryEstimate(base + fine + nodes, "bin_factor")
 
 
 class Nodes:

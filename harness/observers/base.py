@@ -26,9 +26,9 @@ in-memory simulation (:func:`harness.api.simulate`) runs just them. An observer 
 computes says which metrics it adds (``gives``), one that reads metrics it must have says
 which (``needs``): a run whose observers need a metric no observer before them gives is
 refused before it starts. A run writes its log through the observer that says so
-(``writes_log``); a run without one is refused (:func:`harness.runs.run.check_writes_log`). An observer that acts
-every so many steps keeps a :class:`Cadence`. Run-time arguments an observer's
-constructor may name (the builder passes the ones it names): ``grid``, ``target``,
+(``writes_log``); a run without one is refused (:func:`harness.runs.run.check_writes_log`).
+An observer that acts every so many steps keeps a :class:`Cadence`. Run-time arguments
+an observer's constructor may name (the builder passes the ones it names): ``grid``, ``target``,
 ``control``, ``plant``, ``limit`` (the loop's ``N -> infinity`` limit, or None),
 ``steps`` (the run's last step) and ``identity`` (:class:`harness.protocols.Identity`).
 """

@@ -66,7 +66,7 @@ class MeanField:
         self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
         self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
         # the swarm's size and the loop's step, as the run's shared keys must give them
-        self.copies = {"robots": ("robots", self.robots)}
+        self.copies: dict[str, tuple[str, float]] = {"robots": ("robots", self.robots)}
         if dt is not None:
             self.copies["dt"] = ("dt", link.dt)
 
