@@ -129,9 +129,18 @@ def image_kernel(
     return g, d_source, d_point
 
 
+MIN_LENGTH_CELLS = 0.1
+"""The kernel length ``l`` is at least this fraction of a cell, as ``kde.bandwidth`` must
+be: the laws evaluate their kernels at the cell centres and at binning nodes no closer
+than a cell over ``bin_factor``, so a narrower kernel falls between them (its sums there
+are no longer its integrals), and its factors ``1 / l`` and ``1 / l^2`` overflow for a
+tiny ``l`` (``1e-300``)."""
+
+
 def check_length(grid: Grid, length: float) -> float:
-    """The kernel length ``l`` (length), refused unless ``0 < l <=`` the domain side over
-    :data:`LENGTH_PER_SIDE` (:class:`~harness.parameters.ParameterError` naming ``length``).
+    """The kernel length ``l`` (length), refused unless :data:`MIN_LENGTH_CELLS` times the
+    cell size ``<= l <=`` the domain side over :data:`LENGTH_PER_SIDE`
+    (:class:`~harness.parameters.ParameterError` naming ``length``).
     """
     side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
     value = number("length", length, 0.0, strict=True)
@@ -140,6 +149,14 @@ def check_length(grid: Grid, length: float) -> float:
         "length",
         length,
         f"a number in (0, {side / LENGTH_PER_SIDE:g}] (the domain side over {LENGTH_PER_SIDE:g})",
+    )
+    cell = max(grid.dx, grid.dy)
+    require(
+        value >= MIN_LENGTH_CELLS * cell,
+        "length",
+        length,
+        f"at least {MIN_LENGTH_CELLS:g} x the cell size {cell:.3g} = "
+        f"{MIN_LENGTH_CELLS * cell:.3g} (a narrower kernel falls between cell centres)",
     )
     return value
 
