@@ -287,8 +287,8 @@ def pairwise() -> list[list[str]]:
 def preset_points(preset: str, first_only: bool) -> list[list[str]]:
     """The sweep points of a study preset (its ``hydra.sweeper.params``, as Hydra's basic
     sweeper expands them), each as its overrides."""
-    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra import initialize_config_dir
+    from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.global_hydra import GlobalHydra
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
