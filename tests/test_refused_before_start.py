@@ -16,7 +16,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from harness.api import CONFIG_DIR
-from harness.runs.build import as_declared, build
+from harness.runs.build import build
 from harness.runs.checks import ConfigError
 from harness.runs.run import run
 
@@ -177,6 +177,8 @@ def test_an_integer_for_a_float_reaches_the_components_as_that_float(compose):
 
 
 def test_ints_become_floats_only_where_a_float_is_declared():
+    from harness.runs.build import as_declared
+
     class Part:
         def __init__(
             self,
