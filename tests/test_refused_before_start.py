@@ -266,8 +266,8 @@ DESIGNS = options("design")
 def pairwise() -> list[list[str]]:
     """Configs covering every pair of plant, estimator and control options (each
     estimator with each law, the plant ``(estimator + law) mod plants``), with the
-    targets, starts and decentralised designs taken in turn; and each design with the
-    paper's law."""
+    targets, starts and decentralised designs taken in turn, the domain's side written
+    as the int 1; and each design with the paper's law."""
     plants, estimators, laws = (GROUP_OPTIONS[g] for g in ("plant", "estimator", "control"))
     rows = []
     for i, (e, c) in enumerate(itertools.product(range(len(estimators)), range(len(laws)))):
@@ -277,6 +277,7 @@ def pairwise() -> list[list[str]]:
             f"control={laws[c]}",
             f"target={GROUP_OPTIONS['target'][i % len(GROUP_OPTIONS['target'])]}",
             f"init={GROUP_OPTIONS['init'][(i // 3) % len(GROUP_OPTIONS['init'])]}",
+            "grid.length=1",  # the default side written as an int, as YAML allows
         ]
         if estimators[e] == "distributed":
             row.append(f"+design={DESIGNS[c % len(DESIGNS)]}")
