@@ -171,6 +171,14 @@ def as_declared(target: Any, params: dict[str, Any]) -> dict[str, Any]:
     return {k: _as_float(v, _floats(hints.get(k))) for k, v in params.items()}
 
 
+def _equal(a: Any, b: Any) -> bool:
+    """Whether ``a == b`` (False for values that cannot be compared so)."""
+    try:
+        return bool(a == b)
+    except Exception:
+        return False
+
+
 def _factory(plain: dict[str, Any]) -> Any:
     """``_target_`` with its parameters bound, from resolved values: Hydra's
     ``instantiate(..., _partial_=True)``, done directly when no parameter holds a nested
@@ -218,7 +226,9 @@ def component(
     try:
         obj = factory(**runtime)
     except ParameterError as err:
-        raise ConfigError(public_key(cfg, group, err.name), err.value, err.allowed) from None
+        given = plain.get(err.name, err.value) if isinstance(plain, dict) else err.value
+        value = given if _equal(given, err.value) else err.value  # as written: -1, not -1.0
+        raise ConfigError(public_key(cfg, group, err.name), value, err.allowed) from None
     except TypeError as err:
         text = str(err)
         unexpected, missing = _UNEXPECTED.search(text), _MISSING.search(text)
