@@ -43,6 +43,14 @@ class Grid:
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 4:
                 raise ValueError(f"Grid.{name} must be an integer >= 4, got {value!r}")
+        for name in ("x0", "x1", "y0", "y1"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(
+                value, (int, float, np.integer, np.floating)
+            ):
+                raise ValueError(f"Grid.{name} must be a number, got {value!r}")
+            # the bounds reach compiled code, which is typed by its arguments: floats only
+            object.__setattr__(self, name, float(value))
         if not (self.x1 > self.x0 and self.y1 > self.y0):
             raise ValueError(
                 f"Grid bounds must satisfy x1 > x0 and y1 > y0, got "

@@ -206,6 +206,34 @@ def resolution(part: object) -> Any:
     return getattr(part, "resolution", None)
 
 
+SHARED_QUANTITIES = {
+    "robots": ("agents.n", "", "the swarm's size"),
+    "dt": ("sim.dt", " s", "the loop's step"),
+}
+"""The quantities a component may hold a copy of (:func:`copies`), each with the shared
+key that sets it for the whole run, its unit and what it is."""
+
+
+def copies(part: object) -> dict[str, tuple[str, float]]:
+    """What ``part`` holds of the run's :data:`SHARED_QUANTITIES` (its optional ``copies``):
+    ``{parameter: (quantity, value)}``, such as ``{"robots": ("robots", 1024)}`` for a
+    filter whose noise constants are those of ``N`` robots, or ``{"dt": ("dt", 0.01)}``
+    for a link that counts its period in steps. The builder refuses a copy that differs
+    from the run's own value (an override of ``estimator.robots`` alone): the component
+    would compute with one number while the log says another.
+    """
+    return dict(getattr(part, "copies", None) or {})
+
+
+def period(control: Control) -> float | None:
+    """The time (s) between the decisions of a law that decides once per period (its
+    optional ``period``: ``psg``, ``psg_feedback``, ``ot``), None for a law that decides
+    every step; it must be a whole number of the loop's steps.
+    """
+    value = getattr(control, "period", None)
+    return None if value is None else float(value)
+
+
 def needs_robots(control: Control) -> bool:
     """Whether ``control`` has no mean-field form (its optional ``needs_robots``): it
     moves robots and cannot act on a density, so the mean-field plant refuses it and a

@@ -159,7 +159,7 @@ def test_speed_caps():
 @pytest.mark.parametrize("estimator", ["filters", "kde"])
 def test_closed_loop_runs(estimator, compose, smoke):
     cfg = compose(
-        ["control=ot", f"estimator={estimator}", *smoke, "sim.t_final=0.5", "control.period=0.25"]
+        ["control=ot", f"estimator={estimator}", *smoke, "sim.t_final=0.5", "control.period=0.24"]
     )
     records = list(api.simulate(cfg))
     assert len(records) == 26

@@ -176,6 +176,7 @@ class AssignmentControl:
         self.target = target
         self.grid = target.grid
         self.robots = integer("robots", robots, 1)
+        self.copies = {"robots": ("robots", self.robots)}  # one point per robot of the swarm
         self.period = number("period", period, 0.0, strict=True)
         self.seed = integer("seed", seed, 0)
         self.v_max = speed_cap(v_max)

@@ -78,7 +78,7 @@ from harness.estimators.kde import binning_nodes
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import number, require
-from harness.protocols import Control
+from harness.protocols import Control, MemoryEstimate, default_memory
 from harness.records import ControlInput, Estimate
 from harness.targets.densities import Target
 from harness.velocity import VelocityField, centres_to_face_x, centres_to_face_y
@@ -129,9 +129,18 @@ def image_kernel(
     return g, d_source, d_point
 
 
+MIN_LENGTH_CELLS = 0.1
+"""The kernel length ``l`` is at least this fraction of a cell, as ``kde.bandwidth`` must
+be: the laws evaluate their kernels at the cell centres and at binning nodes no closer
+than a cell over ``bin_factor``, so a narrower kernel falls between them (its sums there
+are no longer its integrals), and its factors ``1 / l`` and ``1 / l^2`` overflow for a
+tiny ``l`` (``1e-300``)."""
+
+
 def check_length(grid: Grid, length: float) -> float:
-    """The kernel length ``l`` (length), refused unless ``0 < l <=`` the domain side over
-    :data:`LENGTH_PER_SIDE` (:class:`~harness.parameters.ParameterError` naming ``length``).
+    """The kernel length ``l`` (length), refused unless :data:`MIN_LENGTH_CELLS` times the
+    cell size ``<= l <=`` the domain side over :data:`LENGTH_PER_SIDE`
+    (:class:`~harness.parameters.ParameterError` naming ``length``).
     """
     side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
     value = number("length", length, 0.0, strict=True)
@@ -141,7 +150,56 @@ def check_length(grid: Grid, length: float) -> float:
         length,
         f"a number in (0, {side / LENGTH_PER_SIDE:g}] (the domain side over {LENGTH_PER_SIDE:g})",
     )
+    cell = max(grid.dx, grid.dy)
+    require(
+        value >= MIN_LENGTH_CELLS * cell,
+        "length",
+        length,
+        f"at least {MIN_LENGTH_CELLS:g} x the cell size {cell:.3g} = "
+        f"{MIN_LENGTH_CELLS * cell:.3g} (a narrower kernel falls between cell centres)",
+    )
     return value
+
+
+FINE_CELL_BYTES = 64
+"""Bytes per cell of the target's fine grid (:func:`fine_target`, :data:`TARGET_REFINEMENT`
+cells per binning interval and axis) that a kernel law holds at its peak while it is
+built: eight float64 arrays of that grid (measured with ``tracemalloc``: 49 bytes a cell
+for ``svgd``, whose spline of ``log p_*`` adds its coefficients, 40 for ``mmd``)."""
+
+
+NODE_BYTES = 96
+"""Bytes per binning node (``(Bx + 1) (By + 1)``) and per node-to-point kernel entry:
+twelve float64 arrays (the weights, the scores at the nodes and their meshgrids; the
+six 1-D kernels of :meth:`Nodes` to the cell centres and their temporaries)."""
+
+
+def kernel_memory(grid: Grid, length: object, bin_factor: object) -> MemoryEstimate:
+    """What a kernel law of ``length`` and ``bin_factor`` allocates, before it is built:
+    the grid arrays (:func:`~harness.protocols.default_memory`), the target on the fine grid
+    of :data:`TARGET_REFINEMENT` sub-cells per binning interval (:data:`FINE_CELL_BYTES`
+    a cell, most of it for a large ``bin_factor``) and the nodes with their kernels
+    (:data:`NODE_BYTES`); named by ``bin_factor``. Parameters the law would refuse give
+    the grid arrays only (the law refuses them when it is built).
+    """
+    base = default_memory(grid).nbytes
+    ok = (
+        isinstance(length, (int, float))
+        and not isinstance(length, bool)
+        and math.isfinite(length)
+        and length > 0
+        and isinstance(bin_factor, int)
+        and not isinstance(bin_factor, bool)
+        and bin_factor >= 1
+    )
+    if not ok:
+        return MemoryEstimate(base, "")
+    assert isinstance(length, (int, float)) and isinstance(bin_factor, int)
+    bx = binning_nodes(grid.nx, grid.x1 - grid.x0, float(length), bin_factor)
+    by = binning_nodes(grid.ny, grid.y1 - grid.y0, float(length), bin_factor)
+    fine = TARGET_REFINEMENT**2 * bx * by * FINE_CELL_BYTES
+    nodes = ((bx + 1) * (by + 1) + (bx + 1) * grid.nx + (by + 1) * grid.ny) * NODE_BYTES
+    return MemoryEstimate(base + fine + nodes, "bin_factor")
 
 
 class Nodes:

@@ -18,12 +18,14 @@ from harness.control.kernels import (
     image_kernel,
     input_density,
     kernel_field,
+    kernel_memory,
     noise_drift,
     point_blocks,
     wall_images,
 )
 from harness.grid import Grid
 from harness.parameters import flag, integer, number, speed_cap
+from harness.protocols import MemoryEstimate
 from harness.records import Command, ControlInput
 from harness.targets.densities import Target
 
@@ -135,6 +137,15 @@ class MMDControl:
 
     uses = "positions, target smoothed by the kernel"
     divides_by_density = False
+
+    @classmethod
+    def memory_estimate(
+        cls, grid: Grid, length: object = None, bin_factor: object = 4, **params: object
+    ) -> MemoryEstimate:
+        """What the law allocates (:func:`~harness.control.kernels.kernel_memory`), named by
+        ``bin_factor``.
+        """
+        return kernel_memory(grid, length, bin_factor)
 
     def __init__(
         self,

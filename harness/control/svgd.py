@@ -19,6 +19,7 @@ from harness.control.kernels import (
     image_kernel,
     input_density,
     kernel_field,
+    kernel_memory,
     log_mean,
     noise_drift,
     point_blocks,
@@ -26,6 +27,7 @@ from harness.control.kernels import (
 )
 from harness.grid import Grid
 from harness.parameters import flag, integer, number, speed_cap
+from harness.protocols import MemoryEstimate
 from harness.records import Command, ControlInput
 from harness.targets.densities import Target
 
@@ -140,6 +142,15 @@ class SVGDControl:
 
     uses = "positions, target score"
     divides_by_density = False
+
+    @classmethod
+    def memory_estimate(
+        cls, grid: Grid, length: object = None, bin_factor: object = 4, **params: object
+    ) -> MemoryEstimate:
+        """What the law allocates (:func:`~harness.control.kernels.kernel_memory`), named by
+        ``bin_factor``.
+        """
+        return kernel_memory(grid, length, bin_factor)
 
     def __init__(
         self,

@@ -22,9 +22,13 @@ at the end, whatever happened. ``values`` is the step's dict of numbers, which t
 observers before fill and the ones after read: the metric observers add their keys, the
 guard checks them, the logger writes them. Observers that compute come before those that
 show; those that only compute say so (``computes = True``, :func:`computes`), and an
-in-memory simulation (:func:`harness.api.simulate`) runs just them. An observer that acts
-every so many steps keeps a :class:`Cadence`. Run-time arguments an observer's
-constructor may name (the builder passes the ones it names): ``grid``, ``target``,
+in-memory simulation (:func:`harness.api.simulate`) runs just them. An observer that
+computes says which metrics it adds (``gives``), one that reads metrics it must have says
+which (``needs``): a run whose observers need a metric no observer before them gives is
+refused before it starts. A run writes its log through the observer that says so
+(``writes_log``); a run without one is refused (:func:`harness.runs.run.check_writes_log`).
+An observer that acts every so many steps keeps a :class:`Cadence`. Run-time arguments
+an observer's constructor may name (the builder passes the ones it names): ``grid``, ``target``,
 ``control``, ``plant``, ``limit`` (the loop's ``N -> infinity`` limit, or None),
 ``steps`` (the run's last step) and ``identity`` (:class:`harness.protocols.Identity`).
 """
@@ -122,6 +126,32 @@ def computes(observer: Observer) -> bool:
     step's values and writes or shows nothing, so an in-memory simulation runs it.
     """
     return bool(getattr(observer, "computes", False))
+
+
+def gives(observer: Observer) -> frozenset[str] | None:
+    """The metric names ``observer`` adds to a step's values (its optional ``gives``);
+    none for an observer that only shows or writes (not :func:`computes`), None (it does
+    not say) for one that computes without saying what.
+    """
+    names = getattr(observer, "gives", None)
+    if names is None:
+        return None if computes(observer) else frozenset()
+    return frozenset(names)
+
+
+def needs(observer: Observer) -> dict[str, tuple[str, ...]]:
+    """The metric names ``observer`` must find in a step's values, filled by the observers
+    before it, by the parameter that names them (its optional ``needs``: the divergence
+    guard's ``{"required": (...)}``); empty for an observer that needs none.
+    """
+    return {str(k): tuple(v) for k, v in dict(getattr(observer, "needs", None) or {}).items()}
+
+
+def writes_log(observer: Observer) -> bool:
+    """Whether ``observer`` writes the run's log, ``run.mcap`` (its optional ``writes_log``:
+    the logger, :class:`harness.observers.log.McapLogger`).
+    """
+    return bool(getattr(observer, "writes_log", False))
 
 
 def seconds(observer: Observer) -> float:

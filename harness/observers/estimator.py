@@ -4,6 +4,7 @@ values.
 
 from __future__ import annotations
 
+from harness.estimators.distributed.metrics import NETWORK_KEYS
 from harness.observers.base import RunContext, Status
 from harness.records import StepRecord
 
@@ -15,6 +16,7 @@ class EstimatorMetrics:
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+    gives = NETWORK_KEYS  # what an estimator may publish (the log's contract)
 
     def initialize(self, run: RunContext) -> None:
         """Nothing to prepare."""

@@ -20,6 +20,7 @@ class DivergenceGuard:
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+    gives: tuple[str, ...] = ()  # checks the values, adds none
 
     def __init__(self, required: list[str] | tuple[str, ...] | None = None) -> None:
         if required is None:
@@ -29,6 +30,13 @@ class DivergenceGuard:
         ok = isinstance(required, (list, tuple)) and all(isinstance(k, str) for k in required)
         require(ok, "required", required, "a list of metric names, or null")
         self.required = tuple(required)
+
+    @property
+    def needs(self) -> dict[str, tuple[str, ...]]:
+        """The metrics that must be numbers at every step, by the parameter naming them
+        (:func:`harness.observers.base.needs`): an observer before the guard must give each.
+        """
+        return {"required": self.required}
 
     def initialize(self, run: RunContext) -> None:
         """Nothing to prepare."""

@@ -268,6 +268,8 @@ class McapLogger:
         self._finished = False
         self.seconds = 0.0  # wall time spent logging steps (s)
 
+    writes_log = True  # the run's log (harness.observers.base.writes_log)
+
     BYTES_PER_STEP = 400
     """Bytes of one ``/metrics`` message with its record header (JSON of 24 numbers)."""
 

@@ -93,6 +93,7 @@ class FieldMetrics:
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+    gives = FIELD_KEYS
 
     def __init__(self, grid: Grid, target: Target, control: Control, sigma: float) -> None:
         self.grid, self.target, self.control = grid, target, control

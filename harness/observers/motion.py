@@ -119,6 +119,7 @@ class Motion:
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+    gives = (*MOTION_KEYS, *ROBOT_KEYS, DISAGREEMENT_KEY)
 
     def __init__(self, grid: Grid, plant: Plant) -> None:
         self.grid = grid

@@ -104,6 +104,7 @@ class SwarmTruth:
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
+    gives = SWARM_KEYS
 
     def __init__(
         self,

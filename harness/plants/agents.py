@@ -346,6 +346,10 @@ class Agents:
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
         self.link = command_link(link_period, link_latency, link_loss, dt, self.seed)
+        # the swarm's size and the loop's step, as the run's shared keys must give them
+        self.copies: dict[str, tuple[str, float]] = {"n": ("robots", self.n)}
+        if dt is not None:
+            self.copies["dt"] = ("dt", self.link.dt)
         self.tracking_error: float | None = None
         self.command_age: float | None = None
         self._steps = 0

@@ -65,6 +65,10 @@ class MeanField:
         self.robots = integer("robots", robots, 1)
         self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
         self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
+        # the swarm's size and the loop's step, as the run's shared keys must give them
+        self.copies: dict[str, tuple[str, float]] = {"robots": ("robots", self.robots)}
+        if dt is not None:
+            self.copies["dt"] = ("dt", link.dt)
 
     def check(self, control: Control, **parts: object) -> None:
         """The density moves by the law's field of the density: refuse a law without a

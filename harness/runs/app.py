@@ -60,7 +60,7 @@ from harness.runs.checks import ConfigError, config_line
 from harness.runs.identity import code_identity, config_hash
 from harness.runs.resources import check_disk, disk_need
 from harness.runs.resume import clear, judge
-from harness.runs.run import RunResult, run
+from harness.runs.run import RunResult, check_writes_log, run
 from harness.runs.status import STATUS_FILE, as_int, read_status, report, write_status
 from harness.runs.supervision import (
     Handoff,
@@ -268,6 +268,7 @@ class CheckCallback(Callback):
         try:
             with quiet_hydra_utils():
                 parts = build(config)
+            check_writes_log(parts)
             out = Path(str(config.hydra.run.dir))
             check_dir_name("hydra.run.dir", out)
             if (out / LOG_FILE).exists() or (out / LOG_FILE).is_symlink():
@@ -378,7 +379,9 @@ def _resume_or_run(
         return
     try:
         with quiet_hydra_utils():
-            BUILDS.give(digest, build(cfg))
+            built = build(cfg)
+        check_writes_log(built)
+        BUILDS.give(digest, built)
     except ConfigError as err:
         say(config_line(err), sys.stderr, tty=tty)
         write_status(out, state="invalid", reason=config_line(err), pid=0, **ident)

@@ -12,9 +12,12 @@ into a :class:`~harness.runs.checks.ConfigError` that names the full key.
 
 from __future__ import annotations
 
+import collections.abc
 import functools
 import inspect
 import re
+import types
+import typing
 from typing import Any
 
 import hydra.utils
@@ -25,10 +28,20 @@ from omegaconf.errors import OmegaConfBaseException
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.loop import Experiment
-from harness.observers.base import Observer
+from harness.observers.base import Observer, gives, needs
 from harness.parameters import Incompatible, ParameterError
 from harness.plants.limit import Limit
-from harness.protocols import Control, Estimator, Plant, check_parts, follows_moving_target
+from harness.plants.link import whole_steps
+from harness.protocols import (
+    SHARED_QUANTITIES,
+    Control,
+    Estimator,
+    Plant,
+    check_parts,
+    copies,
+    follows_moving_target,
+    period,
+)
 from harness.runs.checks import (
     SHARED_BLOCKS,
     ConfigError,
@@ -112,6 +125,60 @@ def _nested(value: Any) -> bool:
     return False
 
 
+def _floats(hint: Any) -> Any:
+    """What of a value annotated ``hint`` is a float: ``True`` for ``float`` (or an
+    optional float), the element's answer for a list, tuple or sequence of them, else
+    ``False`` (an annotation that also allows ints or anything else is left alone).
+    """
+    if hint is float:
+        return True
+    args = [a for a in typing.get_args(hint) if a is not type(None)]
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return _floats(args[0]) if len(args) == 1 else False
+    if origin in (list, tuple, collections.abc.Sequence) and args:
+        if origin is tuple and len(args) > 1 and args[-1] is not Ellipsis:
+            return False
+        return ("each", _floats(args[0]))
+    return False
+
+
+def _as_float(value: Any, kind: Any) -> Any:
+    """``value`` with the ints that ``kind`` (:func:`_floats`) declares floats made floats
+    (``bool`` and anything not an int left as they are, for the class's own check).
+    """
+    if kind is True:
+        return float(value) if type(value) is int else value
+    if isinstance(kind, tuple) and isinstance(value, list):
+        return [_as_float(v, kind[1]) for v in value]
+    return value
+
+
+def as_declared(target: Any, params: dict[str, Any]) -> dict[str, Any]:
+    """``params`` with every int given for a parameter that ``target`` declares a float
+    (``float``, ``float | None``, ``list[float]``, ...) made a float.
+
+    The config boundary: YAML and the command line write ``1`` for ``1.0``, and a value
+    that reaches compiled code keeps its type there (numba types a function by its
+    arguments, and an int where a float was compiled fails or recompiles). Each
+    component thus receives the types it declares; a target whose annotations cannot be
+    read gets the values as they are.
+    """
+    try:
+        hints = typing.get_type_hints(target.__init__ if inspect.isclass(target) else target)
+    except Exception:  # annotations naming what cannot be imported here
+        return params
+    return {k: _as_float(v, _floats(hints.get(k))) for k, v in params.items()}
+
+
+def _equal(a: Any, b: Any) -> bool:
+    """Whether ``a == b`` (False for values that cannot be compared so)."""
+    try:
+        return bool(a == b)
+    except Exception:
+        return False
+
+
 def _factory(plain: dict[str, Any]) -> Any:
     """``_target_`` with its parameters bound, from resolved values: Hydra's
     ``instantiate(..., _partial_=True)``, done directly when no parameter holds a nested
@@ -128,7 +195,7 @@ def _factory(plain: dict[str, Any]) -> Any:
         target = hydra.utils.get_object(str(plain["_target_"]))
     except Exception as err:
         raise InstantiationException(str(err)) from err
-    return functools.partial(target, **params)
+    return functools.partial(target, **as_declared(target, params))
 
 
 def component(
@@ -159,7 +226,9 @@ def component(
     try:
         obj = factory(**runtime)
     except ParameterError as err:
-        raise ConfigError(public_key(cfg, group, err.name), err.value, err.allowed) from None
+        given = plain.get(err.name, err.value) if isinstance(plain, dict) else err.value
+        value = given if _equal(given, err.value) else err.value  # as written: -1, not -1.0
+        raise ConfigError(public_key(cfg, group, err.name), value, err.allowed) from None
     except TypeError as err:
         text = str(err)
         unexpected, missing = _UNEXPECTED.search(text), _MISSING.search(text)
@@ -221,7 +290,34 @@ def observers(
         except Exception:
             target = None  # component() names the unloadable target
         out[name] = component(cfg, group, values, **_named(target, runtime))
+    _check_needs(cfg, out)
     return out
+
+
+def _check_needs(cfg: DictConfig, watching: dict[str, Observer]) -> None:
+    """Every metric an observer needs (:func:`harness.observers.base.needs`: the guard's
+    ``required``) is given by an observer before it (:func:`~harness.observers.base.gives`);
+    not checked past an observer that computes without saying what it gives.
+
+    Raises:
+        ConfigError: naming the parameter that names a metric no observer before gives.
+    """
+    given: set[str] = set()
+    for name, observer in watching.items():
+        for param, names in needs(observer).items():
+            missing = [m for m in names if m not in given]
+            if missing:
+                before = ", ".join(list(watching)[: list(watching).index(name)]) or "none"
+                raise ConfigError(
+                    public_key(cfg, f"observers.{name}", param),
+                    list(names),
+                    f"metrics that the observers before {name} ({before}) give "
+                    f"(none gives {', '.join(missing)})",
+                )
+        more = gives(observer)
+        if more is None:
+            return  # what follows may need what this one gives: not known here
+        given |= more
 
 
 def resolve(cfg: DictConfig) -> dict[str, Any]:
@@ -271,6 +367,54 @@ def _on_path(cfg: DictConfig, density: Density, grid: Grid) -> Density:
     return density
 
 
+COPY_TOLERANCE = 1e-9
+"""Relative difference below which a component's copy of a shared quantity is that
+quantity (the rounding of a decimal value written twice)."""
+
+
+def _check_copies(cfg: DictConfig, parts: dict[str, Any]) -> None:
+    """Each component's copy of a shared quantity (:func:`harness.protocols.copies`: the
+    filters' ``robots``, a plant's ``dt``) equals the run's own (``agents.n``, ``sim.dt``).
+
+    A copy is an interpolation (``robots: ${agents.n}``) in the component's YAML; an
+    override of the copy alone would make the component compute with a number the rest of
+    the run, and the log's shared keys, do not have (the filters' noise constants of 5
+    robots for a swarm of 200, a link counting its period in steps of 0.04 s while the
+    loop steps 0.02 s).
+
+    Raises:
+        ConfigError: naming the copy's key, for one that differs.
+    """
+    for group, part in parts.items():
+        for param, (quantity, value) in copies(part).items():
+            shared, unit, what = SHARED_QUANTITIES[quantity]
+            truth = float(OmegaConf.select(cfg, shared))
+            if abs(float(value) - truth) > COPY_TOLERANCE * max(abs(truth), 1.0):
+                raise ConfigError(
+                    public_key(cfg, group, param),
+                    value,
+                    f"{shared} = {truth:g}{unit}, {what}, of which {group}.{param} is a copy "
+                    f"(set {shared} instead)",
+                )
+
+
+def _check_period(cfg: DictConfig, control: Control) -> None:
+    """The period of a law that decides once per period (:func:`harness.protocols.period`)
+    is a whole number of steps of ``sim.dt``, as ``link.period`` must be
+    (:func:`harness.plants.link.whole_steps`); a law never rounds it.
+
+    Raises:
+        ConfigError: naming the law's ``period`` key.
+    """
+    every = period(control)
+    if every is None:
+        return
+    try:
+        whole_steps("period", every, float(cfg.sim.dt), 1)
+    except ParameterError as err:
+        raise ConfigError(public_key(cfg, "control", "period"), err.value, err.allowed) from None
+
+
 def _check_follows(target: Target, control: Control) -> None:
     """Refuse a law that cannot follow a moving target
     (:func:`harness.protocols.follows_moving_target`) when the target moves.
@@ -289,8 +433,10 @@ def build(cfg: DictConfig) -> Experiment:
     In order: every interpolation resolves, every key is read by something, the
     shared blocks, the memory the run will need (estimated from the components'
     parameters before any of them allocates), the components, each component's own
-    check of the others, the loop's ``N -> infinity`` limit, the step bound, the
-    observers and the run's identity.
+    check of the others, the loop's ``N -> infinity`` limit, the step bound, each
+    component's copies of the shared quantities (``agents.n``, ``sim.dt``), a periodic
+    law's period in whole steps, the observers (each metric one needs given by one
+    before it) and the run's identity.
     Building draws no random numbers (robots are placed by ``plant.start(rng)``),
     writes nothing and opens nothing (observers open files and ports when the run
     starts).
@@ -306,7 +452,7 @@ def build(cfg: DictConfig) -> Experiment:
     target = target_on_grid(_on_path(cfg, component(cfg, "target", data), grid), grid)
     init = component(cfg, "init", data)
     density_on_grid("init", init, grid)
-    model = FokkerPlanck(grid, cfg.dynamics.sigma)
+    model = FokkerPlanck(grid, float(cfg.dynamics.sigma))
     control = component(cfg, "control", data, target=target)
     _check_follows(target, control)
     plant = component(cfg, "plant", data, grid=grid, model=model, init=init)
@@ -314,6 +460,8 @@ def build(cfg: DictConfig) -> Experiment:
     _check_parts(plant, estimator, control)
     limit = _limit(plant, control, grid, model, init)
     check_built(cfg, grid, target, control, plant, estimator)
+    _check_copies(cfg, {"plant": plant, "estimator": estimator, "control": control})
+    _check_period(cfg, control)
     steps = round(cfg.sim.t_final / cfg.sim.dt)
     identity = RunIdentity(data, int(cfg.seed), choices(cfg))
     watching = observers(

@@ -28,7 +28,7 @@ from omegaconf import DictConfig
 
 from harness.fokker_planck import NumericalError
 from harness.loop import Experiment, computing, trajectory
-from harness.observers.base import Observer, RunContext, Status, seconds
+from harness.observers.base import Observer, RunContext, Status, seconds, writes_log
 from harness.observers.log import LOG_FILE
 from harness.parameters import ParameterError
 from harness.runs.build import build
@@ -151,6 +151,23 @@ class StopRequest:
         self._previous.clear()
 
 
+def check_writes_log(exp: Experiment) -> None:
+    """A run writes its log: one of its observers must
+    (:func:`harness.observers.base.writes_log`, the observer ``log``).
+
+    Raises:
+        ConfigError: naming ``observers`` for a run whose observers write no log
+            (``observers=[metrics]``, ``~observers.log``), before anything is written.
+    """
+    if not any(writes_log(o) for o in exp.observers.values()):
+        raise ConfigError(
+            "observers",
+            list(exp.observers),
+            "observers that include log, which writes the run's run.mcap "
+            "(observers=[default], or a list with log; harness.api.simulate runs without one)",
+        )
+
+
 def _disk_full(err: BaseException) -> bool:
     return isinstance(err, OSError) and err.errno in DISK_FULL
 
@@ -168,8 +185,9 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
             one directory at the same moment exactly one writes it.
 
     Raises:
-        ConfigError: before anything is written, for a value that is not allowed, an
-            existing log in ``out_dir`` (also one another process creates while this
+        ConfigError: before anything is written, for a value that is not allowed,
+            observers that write no log (:func:`check_writes_log`), an existing log in
+            ``out_dir`` (also one another process creates while this
             run starts), a log larger than the free disk space, or an observer that
             cannot start (a live port in use).
         ValueError: for an experiment that has run already.
@@ -183,6 +201,7 @@ def run(cfg: DictConfig | Experiment, out_dir: Path, overwrite: bool = False) ->
         raise ValueError(
             "this Experiment has run already (its components keep their state): build it again"
         )
+    check_writes_log(exp)
     out_dir = Path(out_dir)
     log_path = out_dir / LOG_FILE
     if not overwrite and (log_path.exists() or log_path.is_symlink()):

@@ -310,6 +310,8 @@ class DistributedEstimator:
         self.robot = integer("robot", robot, 0)
         require(self.robot < self.n_robots, "robot", robot, f"an index below robots = {robots}")
         self.connectivity_every = integer("connectivity_every", connectivity_every, 1)
+        # the swarm's size and the loop's step, as the run's shared keys must give them
+        self.copies = {"robots": ("robots", self.n_robots), "dt": ("dt", dt)}
         self.network = RobotEstimators(
             grid, dt, self.n_robots, h, settings, radius=radius, k_nearest=k_nearest,
             rounds=rounds, gain=gain, initial_rounds=initial_rounds, design=design,

@@ -69,6 +69,8 @@ class FilterEstimator:
             integer("robots", robots, 1), number("bandwidth", bandwidth, 0.0, strict=True), settings
         )
         dt = number("dt", dt, 0.0, strict=True)
+        # the swarm's size and the loop's step, as the run's shared keys must give them
+        self.copies = {"robots": ("robots", measurement.n_robots), "dt": ("dt", dt)}
         self.engine = FilterEngine.named(engine)(grid, model.sigma, dt, measurement)
 
     @classmethod
