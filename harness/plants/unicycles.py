@@ -63,7 +63,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from harness.compiled.robots import unicycle_step
+from harness.compiled.robots import interpolate_robots, unicycle_step
 from harness.grid import Grid
 from harness.parameters import number
 from harness.plants.agents import Agents, Swarm, check_spread, draw_normals, reflect, spread_values
@@ -131,14 +131,6 @@ class Unicycles(Agents):
         )  # fmt: skip
 
 
-_NO_VELOCITIES = np.zeros((2, 0))
-"""The compiled step's velocities when the robots take a field instead."""
-
-
-_NO_FIELD = np.zeros((2, 2, 2))
-"""The compiled step's field when the robots take their own velocities."""
-
-
 class UnicycleSwarm(Swarm):
     """``N`` unicycles in the grid's rectangle (module docstring).
 
@@ -172,6 +164,7 @@ class UnicycleSwarm(Swarm):
         self.omega_max = np.array(omega_max, dtype=float).reshape(n)
         self.lookahead = np.array(lookahead, dtype=float).reshape(n)
         self.applied = np.zeros_like(self.positions)
+        self._commanded = np.empty_like(self.positions)  # a field's velocity at each robot
 
     def move(self, v: np.ndarray, dt: float, rng: np.random.Generator) -> np.ndarray:
         """One hold of ``dt`` (s) under the commanded velocities ``v`` ``(2, N)``
@@ -183,9 +176,9 @@ class UnicycleSwarm(Swarm):
         g = self.grid
         draw_normals(rng, self._noise)
         unicycle_step(
-            self.positions, self.headings, np.ascontiguousarray(v, dtype=float), _NO_FIELD,
-            self._noise, self.v_max, self.omega_max, self.lookahead, self.applied,
-            float(dt), g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
+            self.positions, self.headings, np.ascontiguousarray(v, dtype=float), self._noise,
+            self.v_max, self.omega_max, self.lookahead, self.applied, float(dt),
+            g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
         )  # fmt: skip
         return self.applied
 
@@ -202,15 +195,19 @@ class UnicycleSwarm(Swarm):
 
     def move_field(self, field: VelocityField, dt: float, rng: np.random.Generator) -> float:
         """:meth:`move` with every robot commanded the bilinear interpolant of ``field``'s
-        cell centres at its position (:func:`harness.velocity.interpolate`), in one
-        compiled pass (:func:`harness.compiled.robots.unicycle_step`); returns the
-        tracking error, the mean over robots of ``|applied - commanded|`` (length / s).
+        cell centres at its position (:func:`harness.velocity.interpolate`), in two
+        compiled passes (:func:`harness.compiled.robots.interpolate_robots`, then
+        :func:`harness.compiled.robots.unicycle_step`); returns the tracking error, the
+        mean over robots of ``|applied - commanded|`` (length / s).
         """
         g = self.grid
+        interpolate_robots(
+            self.positions, np.ascontiguousarray(field.centres, dtype=float), self._commanded,
+            g.x0, g.x1, g.y0, g.y1, g.nx, g.ny,
+        )  # fmt: skip
         draw_normals(rng, self._noise)
         total = unicycle_step(
-            self.positions, self.headings, _NO_VELOCITIES,
-            np.ascontiguousarray(field.centres, dtype=float), self._noise, self.v_max,
+            self.positions, self.headings, self._commanded, self._noise, self.v_max,
             self.omega_max, self.lookahead, self.applied, float(dt),
             g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
         )  # fmt: skip
