@@ -7,7 +7,9 @@ the default observers) in a two-job sweep on two cores (the joblib launcher, see
 and 1), against the loop alone: the same built experiment stepped by
 ``harness.loop.trajectory`` with no observer, in this process. Figures:
 
-- the loop alone (s for the whole run);
+- the loop alone (s for the whole run), in one process with the machine otherwise idle,
+  and in two processes at once (one per core, as the sweep's two jobs run): what sharing
+  the machine costs the loop by itself; numba on one thread, as in a sweep's job;
 - the cost of a job: ``ended_at - started_at`` of its ``job_status.json`` (build in the
   launcher's worker, fork, run with every observer, finalised log), the mean of the two
   jobs; once with an empty floor cache (each job computes its finite-N floors) and once
@@ -69,6 +71,17 @@ def loop_alone_s(n_robots: int, seconds: float) -> float:
     return time.perf_counter() - t0
 
 
+def loop_alone_twice_s(n_robots: int, seconds: float) -> float:
+    """The mean of :func:`loop_alone_s` in two processes started together (s)."""
+    cmd = [sys.executable, "-m", "benchmarks.jobs", "--loop-only", f"--n={n_robots}"]
+    cmd.append(f"--seconds={seconds}")
+    procs = [subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [proc.communicate()[0] for proc in procs]
+    if any(proc.returncode != 0 for proc in procs):
+        raise RuntimeError("a loop-alone process failed")
+    return sum(float(out.split()[-1]) for out in outs) / 2
+
+
 def sweep(n_robots: int, seconds: float, where: Path, floors: Path) -> tuple[float, list[float]]:
     """Run the two-job sweep into ``where``; its wall time and each job's cost (s)."""
     cmd = [
@@ -102,13 +115,24 @@ def main(argv: list[str] | None = None) -> bool:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=1024, help="robots")
     parser.add_argument("--seconds", type=float, default=25.0, help="simulated s per job")
+    parser.add_argument("--loop-only", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.n < 1 or not args.seconds > 0:
         parser.error("--n and --seconds must be positive")
+    import numba
+
+    numba.set_num_threads(1)  # as a sweep's job: one core each
+    if args.loop_only:  # one of the two processes of loop_alone_twice_s
+        with threadpool_limits(1):
+            print(f"{loop_alone_s(args.n, args.seconds):.6f}")
+        return True
     print(f"A sweep job of the laws_n kind (N = {args.n}, {args.seconds:g} s) against its loop:")
     with threadpool_limits(1):
         loop = loop_alone_s(args.n, args.seconds)
     record("loop alone (no observer), whole run", loop, "s")
+    twice = loop_alone_twice_s(args.n, args.seconds)
+    record("loop alone, two processes at once", twice, "s")
+    record("loop alone, two at once / one", twice / loop, "x")
     ok = True
     with tempfile.TemporaryDirectory() as tmp:
         floors = Path(tmp) / "floors"
