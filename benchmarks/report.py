@@ -201,6 +201,8 @@ def record(
     """
     if relation not in ("<=", ">="):
         raise ValueError(f"relation must be '<=' or '>=', got {relation!r}")
+    if not math.isfinite(value):
+        raise ValueError(f"{name}: a figure must be a finite number, got {value!r}")
     module, command = _caller()
     figure = Figure(module, command, name, float(value), unit, target, relation, _host())
     _write(figure)
@@ -227,6 +229,8 @@ def _figure(fields: object) -> Figure:
         if key == "value" or value is not None:
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ValueError(f"{key} must be a number, got {value!r}")
+    if not math.isfinite(fields["value"]):
+        raise ValueError(f"value must be a finite number, got {fields['value']!r}")
     for key in ("target", "calibration_ms"):
         value = fields.get(key)
         if value is not None and not (math.isfinite(value) and value > 0):
@@ -304,6 +308,28 @@ def _calibration_of(group: list[Figure]) -> str:
     return f"Calibration at the start: {text}."
 
 
+def summary(benchmark: str) -> str:
+    """The first paragraph of the docstring of benchmark module ``benchmark``, read from
+    its source with :mod:`ast` (never imported: the name comes from a file); empty unless
+    the name is ``benchmarks.<identifier>`` of a module in this project's ``benchmarks/``.
+    """
+    import ast
+
+    from harness.files import UnreadableFile, read_text
+
+    prefix, _, name = benchmark.partition(".")
+    if prefix != "benchmarks" or not name.isidentifier():
+        return ""
+    path = ROOT / "benchmarks" / f"{name}.py"
+    if not path.exists():
+        return ""
+    try:
+        doc = ast.get_docstring(ast.parse(read_text(path, 2**20))) or ""
+    except (UnreadableFile, SyntaxError, ValueError):
+        return ""
+    return " ".join(doc.strip().split("\n\n", 1)[0].split())
+
+
 def figures_section(figures: Iterable[Figure]) -> str:
     """The figures as Markdown: one table per benchmark, with the command that ran it.
 
@@ -319,11 +345,10 @@ def figures_section(figures: Iterable[Figure]) -> str:
     out = []
     for benchmark, group in by_benchmark.items():
         commands = sorted({f.command for f in group})
-        module = sys.modules.get(benchmark)
-        doc = (getattr(module, "__doc__", None) or "").strip().split("\n\n", 1)[0]
-        out.append(f"### `{benchmark}`\n")
+        doc = summary(benchmark)
+        out.append(f"### `{_cell(benchmark)}`\n")
         if doc:
-            out.append(" ".join(doc.split()) + "\n")
+            out.append(doc + "\n")
         out.append("Command: " + ", ".join(f"`{_cell(c)}`" for c in commands) + ".\n")
         out.append(_calibration_of(group) + "\n")
         out.append("| figure | measured | in calibrations | target | target on this host | met |")
@@ -398,14 +423,13 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, UnreadableFile) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    missing = [mark for mark in ("{{machine}}", "{{figures}}") if mark not in template]
+    if missing:
+        print(f"error: {args.template}: no {' or '.join(missing)} in the template", file=sys.stderr)
+        return 2
     if not args.out.parent.is_dir():
         print(f"error: {args.out.parent}: no such folder for --out", file=sys.stderr)
         return 2
-    for name in {f.benchmark for f in figures}:  # their docstrings describe the sections
-        try:
-            __import__(name)
-        except ImportError:
-            pass
     text = page(figures, template, machine())
     tmp = args.out.with_name(f".{args.out.name}.tmp")
     try:

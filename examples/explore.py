@@ -29,6 +29,12 @@ from harness import api
 # where the figure goes, decided before the simulations: a missing folder is created, and
 # one that cannot be stops here, not after them
 figure = Path(os.environ.get("EXPLORE_FIGURE") or Path(tempfile.mkdtemp()) / "explore.png")
+formats = plt.gcf().canvas.get_supported_filetypes()
+plt.close("all")
+if figure.suffix.lstrip(".").lower() not in formats:
+    sys.exit(f"error: EXPLORE_FIGURE={figure}: a file name ending in one of .{', .'.join(formats)}")
+if figure.exists() and not figure.is_file():
+    sys.exit(f"error: EXPLORE_FIGURE={figure}: not a regular file")
 try:
     figure.parent.mkdir(parents=True, exist_ok=True)
 except OSError as err:

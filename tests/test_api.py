@@ -167,6 +167,28 @@ def test_the_example_stops_before_simulating_when_its_figure_has_no_folder(
     assert "\n" not in message
 
 
+@pytest.mark.parametrize("kind", ["directory", "fifo", "no suffix"])
+def test_the_example_refuses_a_figure_it_could_not_write_where_it_says(tmp_path, monkeypatch, kind):
+    """A directory, a FIFO or a name matplotlib would extend (``x`` -> ``x.png``): refused
+    before the simulations, so the printed path is always the written one."""
+    target = tmp_path / "figure"
+    if kind == "directory":
+        target.mkdir()
+    elif kind == "fifo":
+        target = tmp_path / "figure.png"
+        os.mkfifo(target)
+    monkeypatch.setenv("EXPLORE_FIGURE", str(target))
+
+    def no_simulation(*args, **kwargs):
+        raise AssertionError("simulated before the figure's path was checked")
+
+    monkeypatch.setattr(api, "simulate", no_simulation)
+    with pytest.raises(SystemExit) as stop:
+        runpy.run_path(str(EXAMPLE), run_name="__main__")
+    message = str(stop.value.code)
+    assert message.startswith(f"error: EXPLORE_FIGURE={target}:") and "\n" not in message
+
+
 def readme_example() -> str:
     """The Python block of the README's section "From Python"."""
     text = README.read_text()

@@ -165,3 +165,57 @@ def test_a_figure_name_with_a_newline_stays_one_table_row(tmp_path):
     text = report.figures_section([figure])
     rows = [line for line in text.splitlines() if line.startswith("| two")]
     assert rows == [rows[0]] and r"two lines \| here" in rows[0]
+
+
+def test_the_writer_never_imports_what_the_figures_name(tmp_path):
+    """A figures file is data: a benchmark named ``boom`` with a ``boom.py`` beside it is
+    never imported (its section has no summary), and ``this`` prints no Zen."""
+    import subprocess
+    import sys
+
+    (tmp_path / "boom.py").write_text('raise SystemExit("code from data ran")\n')
+    (tmp_path / "this.py").write_text('print("code from data ran")\n')
+    rows = [
+        report.Figure(name, "python -m x", "step", 1.0, "ms", 2.0, "<=", REF)
+        for name in ("boom", "this", "benchmarks.robots")
+    ]
+    figures = tmp_path / "f.jsonl"
+    figures.write_text("".join(json.dumps(report.asdict(f)) + "\n" for f in rows))
+    (tmp_path / "t.in.md").write_text("{{machine}}\n{{figures}}\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "benchmarks.report", "f.jsonl", "--out", "p.md",
+         "--template", "t.in.md"],
+        cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "code from data ran" not in done.stdout + done.stderr
+    page = (tmp_path / "p.md").read_text()
+    assert "### `boom`" in page and "### `this`" in page
+    assert "Speed of the robots that are not ideal integrators" in page  # read, not imported
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), 1e999])
+def test_a_figure_that_is_not_a_finite_number_is_refused(tmp_path, capsys, value):
+    template = tmp_path / "t.in.md"
+    template.write_text("{{machine}}\n{{figures}}\n")
+    figures = tmp_path / "f.jsonl"
+    good = report.Figure("b", "python -m b", "x", 1.0, "ms", 2.0, "<=", REF)
+    figures.write_text(json.dumps({**report.asdict(good), "value": value}) + "\n")
+    out = tmp_path / "p.md"
+    assert report.main([str(figures), "--out", str(out), "--template", str(template)]) == 2
+    assert "finite" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(ValueError, match="finite"):
+        report.record("x", value, "ms")
+
+
+def test_a_template_without_its_placeholders_is_refused(tmp_path, capsys):
+    template = tmp_path / "t.in.md"
+    template.write_text("# no placeholders\n")
+    figures = tmp_path / "f.jsonl"
+    good = report.Figure("b", "python -m b", "x", 1.0, "ms", 2.0, "<=", REF)
+    figures.write_text(json.dumps(report.asdict(good)) + "\n")
+    out = tmp_path / "p.md"
+    assert report.main([str(figures), "--out", str(out), "--template", str(template)]) == 2
+    err = capsys.readouterr().err
+    assert "{{machine}} or {{figures}}" in err and not out.exists()
