@@ -462,8 +462,9 @@ def _records(reader: StreamReader, limits: Limits) -> Iterator[McapRecord]:
             continue
         content = None
         if record.compression == "zstd":
-            content = zstandard.frame_content_size(record.data)  # ZstdError: damaged
-        if limits.unpack(record.uncompressed_size, content if content >= 0 else None):
+            told = zstandard.frame_content_size(record.data)  # ZstdError: damaged
+            content = told if told >= 0 else None  # -1: the frame does not say
+        if limits.unpack(record.uncompressed_size, content):
             yield from breakup_chunk(record, validate_crc=True)
 
 
