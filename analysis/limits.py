@@ -3,8 +3,12 @@ bound (:class:`Limits`, used by :func:`analysis.load.load_run`).
 
 A log's own ``config`` record says how many robots and steps the run had: no topic has
 more messages than steps (and the target's first), no positions or poses message more
-points than robots. A log without a readable record is bounded by its size instead.
-Messages beyond are counted and never decoded.
+points than robots. The record is as forgeable as the rest of the file, so the log's
+size bounds it too, always: no more robot points in all than
+:data:`POINTS_PER_FILE_BYTE` per byte of the file, whatever the record claims, and no
+more bytes decompressed from its chunks than :data:`DECODED_PER_FILE_BYTE` per byte of
+the file (beyond :data:`DECODED_FLOOR`), whatever a chunk's header declares. Messages
+and chunks beyond a bound are counted and never decoded.
 """
 
 from __future__ import annotations
@@ -23,13 +27,24 @@ MAX_BYTES_PER_ROBOT = 128
 explicit takes 69), for the size check before a message is parsed."""
 
 POINTS_PER_FILE_BYTE = 4
-"""Most robot points read per byte of a log whose config record does not say how many
-robots and steps it has (a log's own positions take several bytes each, compressed)."""
+"""Most robot points read in all per byte of a log, whatever its config record says (a
+log's own positions take several bytes each, compressed)."""
+
+
+DECODED_PER_FILE_BYTE = 64
+"""Most bytes decompressed from a log's chunks per byte of the file, in all, beyond
+:data:`DECODED_FLOOR` (a run's own log decompresses to a few times its size: positions
+and fields are floats that compress little)."""
+
+DECODED_FLOOR = 64 << 20
+"""Bytes any log may decompress whatever its size (a chunk of a small log holds up to
+the writer's 1 MiB and one message)."""
 
 
 class Limits:
     """How much a log may hold, from its ``config`` record (the number of robots and of
-    steps), else from its size; what was beyond them is counted, never decoded.
+    steps) and from its size (the smaller bound wins); what was beyond them is counted,
+    never decoded.
 
     Args:
         size: The log's size in bytes.
@@ -41,6 +56,7 @@ class Limits:
         self.messages: int | None = None  # per topic: one per step at most, and p_target
         self.seen: dict[str, int] = {}
         self.points = 0
+        self.decoded = 0
         self.beyond: dict[str, int] = {}
 
     def configure(self, text: str) -> None:
@@ -75,24 +91,50 @@ class Limits:
             return False
         return True
 
-    def room(self, topic: str, size: int) -> bool:
-        """Whether a robots message of ``size`` bytes may be parsed (at most
-        :data:`MAX_BYTES_PER_ROBOT` per robot of the config).
+    def unpack(self, declared: int, content: int | None) -> bool:
+        """Whether a chunk may be decompressed: what it declares (``declared``, its
+        header's uncompressed size, and ``content``, the size its compressed frame
+        declares when it does) fits in :data:`DECODED_PER_FILE_BYTE` bytes per byte of
+        the file beyond :data:`DECODED_FLOOR`, less what earlier chunks took; one beyond
+        is counted and not decompressed.
         """
-        if self.robots is not None and size > MAX_BYTES_PER_ROBOT * self.robots + 4096:
-            self._beyond(f"{topic} messages too large for {self.robots} robots")
+        size = max(declared, content or 0)
+        if self.decoded + size > DECODED_FLOOR + DECODED_PER_FILE_BYTE * self.size:
+            self._beyond(f"chunks beyond {DECODED_PER_FILE_BYTE} decompressed bytes per byte")
+            return False
+        self.decoded += size
+        return True
+
+    @property
+    def left(self) -> int:
+        """Robot points the file's size still allows (:data:`POINTS_PER_FILE_BYTE` per
+        byte in all, less those kept).
+        """
+        return max(POINTS_PER_FILE_BYTE * self.size - self.points, 0)
+
+    def room(self, topic: str, size: int) -> bool:
+        """Whether a robots message of ``size`` bytes may be parsed: at most
+        :data:`MAX_BYTES_PER_ROBOT` per point it may hold, the fewer of the config's
+        robots and the points the file's size still allows (:attr:`left`).
+        """
+        if self.robots is not None and self.robots <= self.left:
+            if size > MAX_BYTES_PER_ROBOT * self.robots + 4096:
+                self._beyond(f"{topic} messages too large for {self.robots} robots")
+                return False
+        elif size > MAX_BYTES_PER_ROBOT * self.left + 4096:
+            self._beyond(f"{topic} messages beyond {POINTS_PER_FILE_BYTE} points per byte")
             return False
         return True
 
     def take(self, topic: str, points: int) -> bool:
         """Whether a robots message of ``points`` points is kept: at most one point per
-        robot of the config, or, without one, :data:`POINTS_PER_FILE_BYTE` points per
-        byte of the file in all.
+        robot of the config, and no more than :data:`POINTS_PER_FILE_BYTE` points per
+        byte of the file in all (:attr:`left`).
         """
         if self.robots is not None and points > self.robots:
             self._beyond(f"{topic} messages of more than {self.robots} robots")
             return False
-        if self.robots is None and self.points + points > POINTS_PER_FILE_BYTE * self.size:
+        if points > self.left:
             self._beyond(f"{topic} messages beyond {POINTS_PER_FILE_BYTE} points per byte")
             return False
         self.points += points
@@ -106,7 +148,7 @@ class Limits:
         if not self.beyond:
             return None
         parts = ", ".join(f"{n} {what}" for what, n in sorted(self.beyond.items()))
-        return f"more than the log's config allows, not read: {parts}"
+        return f"more than the log's config and size allow, not read: {parts}"
 
 
 def _positive(value: object) -> float | None:

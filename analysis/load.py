@@ -25,16 +25,18 @@ from __future__ import annotations
 import json
 import math
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import zstandard
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
-from mcap.records import Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import InvalidMagic, StreamReader
+from mcap.records import Channel, Chunk, Footer, McapRecord, Message, Metadata, Schema
+from mcap.stream_reader import InvalidMagic, StreamReader, breakup_chunk
 
 from analysis.limits import ROBOT_TOPICS, Limits
 from analysis.output import atomic_path
@@ -320,9 +322,10 @@ def load_run(path: str | Path, topics: set[str] | None = None, poses: bool = Tru
     contract's "not applicable") is read as NaN, counted in ``foreign`` and warned
     about. What the log holds is bounded before it is decoded (:class:`Limits`): no
     more messages per topic than the config record's steps, no more points per positions
-    or poses message than its robots (without a config record, a number of points in
-    proportion to the file's size); what lies beyond is skipped, counted in
-    ``recovery`` and warned about.
+    or poses message than its robots, and never more points in all, nor more bytes
+    decompressed from its chunks, than in proportion to the file's size (whatever the
+    config record or a chunk's header claims); what lies beyond is skipped unread,
+    counted in ``recovery`` and warned about.
 
     Args:
         path: The log or its directory.
@@ -354,8 +357,10 @@ def load_run(path: str | Path, topics: set[str] | None = None, poses: bool = Tru
     replaced: dict[str, int] = {}
     with open(path, "rb") as f:
         try:
-            reader = StreamReader(f, validate_crcs=True, record_size_limit=1 << 30)
-            for record in reader.records:
+            reader = StreamReader(
+                f, validate_crcs=True, record_size_limit=1 << 30, emit_chunks=True
+            )
+            for record in _records(reader, limits):
                 if isinstance(record, Schema):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
@@ -409,7 +414,7 @@ def load_run(path: str | Path, topics: set[str] | None = None, poses: bool = Tru
         last_t = metric_rows[-1]["t"] if metric_rows else float("nan")
         damage = "file ends early" if not complete else "file damaged"
         if complete and problem is None and not n_bad:
-            damage = ""  # whole, but holding more than its config allows
+            damage = ""  # whole, but holding more than its config and size allow
         recovery = "; ".join(
             part
             for part in (
@@ -444,6 +449,23 @@ def load_run(path: str | Path, topics: set[str] | None = None, poses: bool = Tru
         poses_t=np.array([t for t, _ in pose_list]),
         poses=[p for _, p in pose_list],
     )
+
+
+def _records(reader: StreamReader, limits: Limits) -> Iterator[McapRecord]:
+    """The records of ``reader`` (which emits chunks whole) in order, each chunk's records
+    in place of the chunk: decompressed (uncompressed CRC checked) only when
+    ``limits`` allow what it declares (:meth:`Limits.unpack`), else left out unread.
+    """
+    for record in reader.records:
+        if not isinstance(record, Chunk):
+            yield record
+            continue
+        content = None
+        if record.compression == "zstd":
+            told = zstandard.frame_content_size(record.data)  # ZstdError: damaged
+            content = told if told >= 0 else None  # -1: the frame does not say
+        if limits.unpack(record.uncompressed_size, content):
+            yield from breakup_chunk(record, validate_crc=True)
 
 
 def _metric_arrays(rows: list[dict[str, float]]) -> dict[str, np.ndarray]:

@@ -1,23 +1,29 @@
 """A study's inputs for its documentation page (:mod:`analysis.study_pages`): where they
 are, and each read and checked before anything is written.
 
-The sweep's ``sweep_aggregated.csv`` and figure are read through :mod:`harness.files`
-(regular files only, size capped); the CSV must be UTF-8 text with the columns of an
+The sweep's ``sweep_aggregated.csv`` and figure, the study's template and its preset are
+read through :mod:`harness.files` (regular files only, size capped, text strictly
+UTF-8); the CSV must be text without control characters, with the columns of an
 aggregated sweep, at least one row and every row whole (:func:`parse_points`), the figure
-a PNG. Only then are they copied into ``docs`` (:func:`write_inputs`, atomically): a bad
-input is one line and leaves every file in ``docs`` as it was.
+a whole PNG (:func:`png_problem`). Only then are they copied into ``docs``
+(:func:`write_inputs`, atomically): a bad input is one line and leaves every file in
+``docs`` as it was.
 """
 
 from __future__ import annotations
 
 import csv
+import re
+import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
 from analysis.output import atomic_path
-from harness.files import UnreadableFile, read_bytes
+from analysis.safe_yaml import ConfigRecordError, safe_config
+from harness.files import UnreadableFile, read_bytes, read_text
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository's root (``conf/`` and ``docs/`` are found from here)."""
@@ -62,24 +68,57 @@ class Study:
         return self.docs / "sweeps" / f"{self.name}.png"
 
 
+MAX_TEXT_BYTES = 1 << 20
+"""Largest template or preset read (bytes; each is a few kB)."""
+
+
+def read_template(path: Path) -> str:
+    """The text of the template ``path`` (:func:`harness.files.read_text`: a regular
+    file of at most :data:`MAX_TEXT_BYTES`, strict UTF-8).
+
+    Raises:
+        PageError: for a template that cannot be read so, in one line.
+    """
+    try:
+        return read_text(path, MAX_TEXT_BYTES)
+    except UnreadableFile as err:
+        raise PageError(str(err)) from None
+
+
+def _analysis(name: str, conf: Path) -> dict[str, object]:
+    """The ``analysis`` block of study ``name``'s preset ``conf/experiment/<name>.yaml``
+    (empty without a preset or a block), read as :func:`read_template` reads a template
+    and parsed within bounds (:func:`analysis.safe_yaml.safe_config`).
+
+    Raises:
+        PageError: for a preset that cannot be read or is not a mapping, in one line.
+    """
+    path = conf / "experiment" / f"{name}.yaml"
+    if not present(path):
+        return {}
+    try:
+        preset = safe_config(read_template(path)) or {}
+    except (ConfigRecordError, yaml.YAMLError) as err:
+        raise PageError(f"{path}: not a YAML preset ({' '.join(str(err).split())})") from None
+    block = preset.get("analysis") if isinstance(preset, dict) else None
+    if not isinstance(preset, dict) or not isinstance(block or {}, dict):
+        raise PageError(f"{path}: not a preset (a mapping with an analysis mapping)")
+    return dict(block or {})
+
+
 def declared_figure(name: str, conf: Path = ROOT / "conf") -> str:
     """The figure study ``name`` declares (``analysis.figure`` of its preset; the
     generic ``convergence`` without one).
     """
-    path = conf / "experiment" / f"{name}.yaml"
-    if not path.exists():
-        return "convergence"
-    preset = yaml.safe_load(path.read_text()) or {}
-    return str((preset.get("analysis") or {}).get("figure", "convergence"))
+    return str(_analysis(name, conf).get("figure", "convergence"))
 
 
 def declared_primary(name: str, conf: Path = ROOT / "conf") -> list[str]:
     """The keys study ``name`` declares as its points (``analysis.primary``)."""
-    path = conf / "experiment" / f"{name}.yaml"
-    if not path.exists():
-        return []
-    preset = yaml.safe_load(path.read_text()) or {}
-    return [str(k) for k in (preset.get("analysis") or {}).get("primary", [])]
+    primary = _analysis(name, conf).get("primary") or []
+    if not isinstance(primary, list):
+        raise PageError(f"the preset of {name}: analysis.primary is not a list")
+    return [str(k) for k in primary]
 
 
 MAX_CSV_BYTES = 64 << 20
@@ -90,6 +129,9 @@ MAX_FIGURE_BYTES = 64 << 20
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 """The first bytes of every PNG file."""
+
+CONTROL = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f-\x9f]")
+"""A control character other than tab, line feed and carriage return (C0, DEL, C1)."""
 
 REQUIRED_COLUMNS = ("law", "jobs")
 """Columns every aggregated CSV has (:func:`analysis.rows.points`), beside at least one
@@ -113,9 +155,47 @@ class Inputs:
     figure: bytes | None
 
 
+def png_problem(data: bytes) -> str:
+    """What makes ``data`` other than a whole PNG file, in words (empty when nothing
+    does): the signature, then chunks each of a length that fits in the file and a
+    matching CRC-32, ``IHDR`` first (13 bytes, a width and height above 0), at least
+    one ``IDAT``, and ``IEND`` last, with nothing after it.
+    """
+    if not data.startswith(PNG_SIGNATURE):
+        return "no PNG signature"
+    at, first, has_data = len(PNG_SIGNATURE), True, False
+    while True:
+        if at + 12 > len(data):
+            return f"cut short at byte {at} (no IEND chunk)"
+        length, kind = struct.unpack(">I4s", data[at : at + 8])
+        end = at + 12 + length
+        if length > 0x7FFFFFFF or end > len(data):
+            return f"a chunk at byte {at} runs past the end of the file (cut short)"
+        body = data[at + 8 : end - 4]
+        if zlib.crc32(data[at + 4 : end - 4]) != struct.unpack(">I", data[end - 4 : end])[0]:
+            return f"the {kind[:4]!r} chunk at byte {at} fails its CRC (damaged)"
+        if first:
+            if kind != b"IHDR" or length != 13:
+                return "its first chunk is not a 13-byte IHDR"
+            width, height = struct.unpack(">II", body[:8])
+            if width == 0 or height == 0:
+                return f"an image of {width} x {height} pixels"
+            first = False
+        has_data = has_data or kind == b"IDAT"
+        at = end
+        if kind == b"IEND":
+            break
+    if not has_data:
+        return "no IDAT chunk (no pixels)"
+    if at != len(data):
+        return f"{len(data) - at} bytes after its IEND chunk"
+    return ""
+
+
 def parse_points(data: bytes, path: Path) -> list[dict[str, str]]:
     """The rows of the aggregated CSV ``data`` (the bytes of ``path``), checked: UTF-8
-    text, a header with :data:`REQUIRED_COLUMNS` and a ``STAT_mean`` column, at least
+    text without control characters other than tab and line ends (:data:`CONTROL`), a
+    header with :data:`REQUIRED_COLUMNS` and a ``STAT_mean`` column, at least
     one row, every row as long as the header and the last one ended by a line break
     (a file cut short is refused, not read as fewer points).
 
@@ -128,6 +208,11 @@ def parse_points(data: bytes, path: Path) -> list[dict[str, str]]:
         raise PageError(f"{path}: not UTF-8 text (byte {err.start}: {err.reason})") from None
     if not text.strip():
         raise PageError(f"{path}: empty, not an aggregated sweep CSV")
+    control = CONTROL.search(text)
+    if control:
+        line = text.count("\n", 0, control.start()) + 1
+        code = f"U+{ord(control.group()):04X}"
+        raise PageError(f"{path}: a control character ({code}) on line {line}, not a CSV cell")
     try:
         table = list(csv.reader(text.splitlines(keepends=True), strict=True))
     except csv.Error as err:
@@ -155,28 +240,30 @@ def parse_points(data: bytes, path: Path) -> list[dict[str, str]]:
 def read_inputs(study: Study) -> Inputs:
     """The study's inputs: the sweep's aggregated CSV and figure when they exist (read
     through :mod:`harness.files`: regular files only, size capped), else the copies in
-    ``docs``; each CSV checked (:func:`parse_points`), each figure a PNG.
+    ``docs``; each CSV checked (:func:`parse_points`), each figure a whole PNG
+    (:func:`png_problem`).
 
     Raises:
         PageError: for an input that cannot be read or is not what it should be (one
             line); nothing has been written then.
     """
     source = study.figures / study.name / "sweep_aggregated.csv"
-    new_csv = _read(source, MAX_CSV_BYTES) if _present(source) else None
+    new_csv = _read(source, MAX_CSV_BYTES) if present(source) else None
     if new_csv is not None:
         rows = parse_points(new_csv, source)
-    elif _present(study.data):
+    elif present(study.data):
         rows = parse_points(_read(study.data, MAX_CSV_BYTES), study.data)
     else:
         rows = []
     figure = study.figures / study.name / f"{declared_figure(study.name)}.png"
-    new_figure = _read(figure, MAX_FIGURE_BYTES) if _present(figure) else None
-    if new_figure is not None and not new_figure.startswith(PNG_SIGNATURE):
-        raise PageError(f"{figure}: not a PNG image")
+    new_figure = _read(figure, MAX_FIGURE_BYTES) if present(figure) else None
+    problem = None if new_figure is None else png_problem(new_figure)
+    if problem:
+        raise PageError(f"{figure}: not a PNG image ({problem})")
     return Inputs(rows, new_csv, new_figure)
 
 
-def _present(path: Path) -> bool:
+def present(path: Path) -> bool:
     """Whether anything (a file, a FIFO, a broken link, ...) is at ``path``."""
     return path.exists() or path.is_symlink()
 
@@ -208,6 +295,6 @@ def read_points(path: Path) -> list[dict[str, str]]:
     """The checked rows of an aggregated CSV (:func:`parse_points`; empty when there is
     none).
     """
-    if not _present(path):
+    if not present(path):
         return []
     return parse_points(_read(path, MAX_CSV_BYTES), path)

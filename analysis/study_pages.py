@@ -13,9 +13,11 @@ study with a ``sweep_aggregated.csv`` under ``--figures``), this
 2. renders ``docs/studies/<study>.md`` from the template ``docs/studies/<study>.in.md``
    (hand-written prose) with every number taken from the CSV;
 3. only then copies the new CSV to ``docs/studies/data/<study>.csv`` and the figure to
-   ``docs/sweeps/<study>.png`` and writes the page, each atomically. An input that is
-   empty, cut short, foreign, not UTF-8 or not a regular file, or a page that does not
-   render, is one line (exit status 2) and nothing in ``docs/`` is written.
+   ``docs/sweeps/<study>.png`` and writes the page, each atomically. An input (the
+   CSV, the figure, the template, the preset) that is empty, cut short, foreign, not
+   UTF-8, holding a control character or not a regular file, or a page that does not
+   render, is one line (exit status 2) and nothing in ``docs/`` is written, for any of
+   the studies asked for: every page is rendered before the first file is written.
 
 ``make sweeps`` and ``make sweep-<study>`` run it after each study.
 
@@ -73,13 +75,16 @@ import numpy as np
 import yaml
 
 from analysis.output import write_text
+from analysis.safe_yaml import ConfigRecordError, safe_config
 from analysis.study_data import (
     ROOT,
     PageError,
     Study,
     declared_primary,
+    present,
     read_inputs,
     read_points,
+    read_template,
     write_inputs,
 )
 
@@ -310,7 +315,10 @@ def split_front_matter(text: str) -> tuple[dict[str, Any], str]:
         end = text.find("\n---\n", 4)
         if end < 0:
             raise PageError("front matter without its closing '---'")
-        meta = yaml.safe_load(text[4:end]) or {}
+        try:
+            meta = safe_config(text[4:end]) or {}
+        except (ConfigRecordError, yaml.YAMLError) as err:
+            raise PageError(f"front matter is not YAML ({' '.join(str(err).split())})") from None
         if not isinstance(meta, dict):
             raise PageError("front matter is not a mapping")
         return meta, text[end + 5 :]
@@ -360,10 +368,13 @@ def render(study: Study, rows: list[dict[str, str]] | None = None) -> str:
     by ``study=NAME`` is read as :func:`read_inputs` reads it.
     """
     points = Points(read_points(study.data) if rows is None else rows)
-    source = study.template.read_text() if study.template.exists() else None
+    source = read_template(study.template) if present(study.template) else None
     text = source if source is not None else default_template(study, points)
-    meta, body = split_front_matter(text)
     where = study.template if source is not None else "default template"
+    try:
+        meta, body = split_front_matter(text)
+    except PageError as err:
+        raise PageError(f"{where}: {err}") from None
 
     def other(name: str) -> Points:
         rows = read_inputs(Study(name, study.figures, study.docs)).rows
@@ -411,20 +422,24 @@ def studies(docs: Path, figures: Path) -> list[str]:
 
 
 def main(argv: Iterable[str] | None = None) -> int:
-    """Render the pages; exit status 2 with one line when a template does not render."""
+    """Render the pages; exit status 2 with one line when an input is refused or a
+    template does not render, before any file is written.
+    """
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("study", nargs="*", help="studies (default: all)")
     parser.add_argument("--figures", type=Path, default=Path("figures/sweeps"))
     parser.add_argument("--docs", type=Path, default=ROOT / "docs")
     args = parser.parse_args(None if argv is None else list(argv))
+    done = []
     for name in args.study or studies(args.docs, args.figures):
         study = Study(name, args.figures, args.docs)
-        try:  # the inputs are checked and the page rendered before anything is written
+        try:  # every input checked and every page rendered before anything is written
             inputs = read_inputs(study)
-            page = render(study, inputs.rows)
+            done.append((study, inputs, render(study, inputs.rows)))
         except PageError as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
+    for study, inputs, page in done:
         write_inputs(study, inputs)
         write_text(study.page, page)
         print(study.page)

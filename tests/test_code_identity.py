@@ -129,7 +129,7 @@ def test_files_that_are_not_code_leave_the_code_clean(tmp_path, monkeypatch, com
 
 @pytest.mark.parametrize(
     "change",
-    ["edit", "untracked", "ignored", "config"],
+    ["edit", "untracked", "ignored", "config", "staged", "deleted"],
 )
 def test_changed_code_makes_the_checkout_dirty(tmp_path, monkeypatch, change):
     repo = tmp_path / "code"
@@ -142,12 +142,69 @@ def test_changed_code_makes_the_checkout_dirty(tmp_path, monkeypatch, change):
         (repo / "harness" / "new_law.py").write_text("BETA = 1\n")
     elif change == "ignored":  # ignoring a code file does not make it less the code
         (repo / "harness" / "generated_law.py").write_text("GAMMA = 1\n")
-    else:
+    elif change == "config":
         (repo / "conf" / "control").mkdir()
         (repo / "conf" / "control" / "mine.yaml").write_text("alpha: 1\n")
+    elif change == "staged":  # in the index, not in the commit
+        (repo / "harness" / "new_law.py").write_text("BETA = 1\n")
+        git(repo, "add", "harness/new_law.py")
+    else:
+        (repo / "harness" / "law.py").unlink()
     now = identity.code_identity()
     assert now["git_dirty"] == "true" and now["git_diff_sha256"] != "clean"
     assert now["code_sha256"] != clean["code_sha256"]
+
+
+@pytest.mark.parametrize("flag", ["--skip-worktree", "--assume-unchanged"])
+def test_an_edit_under_an_index_flag_makes_the_checkout_dirty(tmp_path, monkeypatch, flag):
+    repo = tmp_path / "code"
+    checkout(repo, PROJECT)
+    monkeypatch.setattr(identity, "ROOT", repo)
+    clean = identity.code_identity()
+    git(repo, "update-index", flag, "harness/law.py")  # git diff no longer looks at it
+    assert identity.code_identity() == clean  # the flag alone changes no code
+    law = repo / "harness" / "law.py"
+    law.write_text("ALPHA = 2\n")
+    edited = identity.code_identity()
+    assert (edited["git_dirty"], edited["git_diff_sha256"] != "clean") == ("true", True)
+    assert edited["code_sha256"] != clean["code_sha256"]
+    law.write_text("ALPHA = 3\n")  # the flagged file edited again: other code
+    again = identity.code_identity()
+    assert again["code_sha256"] not in (clean["code_sha256"], edited["code_sha256"])
+    law.write_text("ALPHA = 1\n")  # the commit's bytes again
+    assert identity.code_identity() == clean
+
+
+NOISE = '#!/bin/sh\n[ -n "$1" ] && cat "$1"\ndate +%s%N\nod -An -N8 -tx1 /dev/urandom\n'
+"""A diff tool or text conversion whose output changes on every call."""
+
+
+@pytest.mark.parametrize("setting", ["diff.external", "textconv", "color", "user-diff.external"])
+def test_the_users_git_configuration_never_enters_the_code_identity(tmp_path, monkeypatch, setting):
+    repo = tmp_path / "code"
+    checkout(repo, PROJECT)
+    monkeypatch.setattr(identity, "ROOT", repo)
+    (repo / "harness" / "law.py").write_text("ALPHA = 2\n")
+    plain = identity.code_identity()
+    noise = tmp_path / "noise.sh"
+    noise.write_text(NOISE)
+    noise.chmod(0o755)
+    if setting == "diff.external":
+        git(repo, "config", "diff.external", str(noise))
+    elif setting == "textconv":
+        (repo / ".git" / "info" / "attributes").write_text("*.py diff=noise\n")
+        git(repo, "config", "diff.noise.textconv", str(noise))
+    elif setting == "color":
+        git(repo, "config", "color.diff", "always")
+        git(repo, "config", "color.ui", "always")
+    else:  # in the user's own configuration (~/.gitconfig)
+        home = tmp_path / "home"
+        home.mkdir()
+        (home / ".gitconfig").write_text(f"[diff]\n\texternal = {noise}\n")
+        monkeypatch.setenv("HOME", str(home))
+        monkeypatch.delenv("XDG_CONFIG_HOME", raising=False)
+    first, second = identity.code_identity(), identity.code_identity()
+    assert first == second == plain
 
 
 def test_a_fifo_among_the_code_files_enters_the_identity_unopened(tmp_path, monkeypatch):

@@ -195,6 +195,21 @@ def _set_floor(key: str, value):
     return damage
 
 
+def _swap_band(band: str):
+    """Swap a band's lo and hi (an inverted band), the checksum recomputed."""
+
+    def damage(path: Path) -> None:
+        data = json.loads(path.read_text())
+        floors = data["floors"]
+        lo, hi = f"{band}_floor_lo", f"{band}_floor_hi"
+        assert float(floors[lo]) < float(floors[hi])  # a real band: the swap inverts it
+        floors[lo], floors[hi] = floors[hi], floors[lo]
+        data["checksum"] = digest(canonical(floors))
+        path.write_text(json.dumps(data))
+
+    return damage
+
+
 def _nested(path: Path) -> None:
     path.write_text("[" * 200_000)  # within the size cap, deeper than any parser's stack
 
@@ -213,6 +228,11 @@ def _nested(path: Path) -> None:
         _set_floor("swarm_w2_floor_lo", None),
         _set_floor("swarm_l2_floor_median", "0.1"),
         _nested,
+        _swap_band("swarm_l2"),
+        _swap_band("swarm_w2"),
+        _set_floor("swarm_l2_floor_mean", "9.0"),
+        _set_floor("swarm_w2_floor_mean", "5e-324"),
+        _set_floor("swarm_l2_floor_lo", "-0.0"),
     ],
     ids=[
         "nan",
@@ -226,6 +246,11 @@ def _nested(path: Path) -> None:
         "missing-key",
         "extra-key",
         "nested-json",
+        "l2-lo-above-hi",
+        "w2-lo-above-hi",
+        "mean-above-hi",
+        "mean-below-lo",
+        "negative-zero",
     ],
 )
 def test_floors_the_computation_cannot_give_are_recomputed_even_under_a_matching_checksum(
@@ -254,6 +279,32 @@ def test_floors_the_computation_cannot_give_are_never_stored(tmp_path):
     assert len(seen) == 1 and "not storing" in seen[0], seen
     assert not list(tmp_path.iterdir())
     assert cache.put(inputs, floors) is not None
+
+
+@pytest.mark.parametrize(
+    "bad, why",
+    [
+        ({"swarm_w2_floor_lo": "hi", "swarm_w2_floor_hi": "lo"}, "band is inverted"),
+        ({"swarm_l2_floor_mean": "hi+"}, "outside its band"),
+        ({"swarm_l2_floor_mean": "lo-"}, "outside its band"),
+    ],
+    ids=["lo-above-hi", "mean-above-hi", "mean-below-lo"],
+)
+def test_a_band_the_computation_cannot_give_is_never_stored(tmp_path, bad, why):
+    observer, n = truth(tmp_path)
+    inputs = observer.floor_inputs(n)
+    floors = {k: v for k, v in record(None).items() if not k.startswith("swarm_floor_")}
+
+    def value(band: str, spec: str) -> str:
+        lo, hi = (float(floors[f"{band}_floor_{x}"]) for x in ("lo", "hi"))
+        return repr({"lo": lo, "hi": hi, "hi+": 2 * hi + 1, "lo-": lo / 2}[spec])
+
+    forged = {k: value(k.split("_floor_")[0], v) for k, v in bad.items()}
+    cache = FloorCache(tmp_path)
+    with cache_warnings() as seen:
+        assert cache.put(inputs, {**floors, **forged}) is None
+    assert len(seen) == 1 and "not storing" in seen[0] and why in seen[0], seen
+    assert not list(tmp_path.iterdir())
 
 
 def test_a_run_never_logs_poisoned_floors_from_the_cache(tmp_path, compose, smoke):

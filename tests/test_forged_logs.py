@@ -4,14 +4,20 @@ skipped unread with a LogWarning, and analysis.figures decodes no poses at all.
 """
 
 import json
+import struct
 import tracemalloc
 import warnings
+import zlib
 from pathlib import Path
 
 import numpy as np
 import pytest
+import zstandard
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
-from mcap.writer import CompressionType, Writer
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, DataEnd, Footer, Header, Metadata, Schema
+from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 from mcap_protobuf.schema import register_schema
 
 from analysis.load import LogWarning, load_run
@@ -55,12 +61,91 @@ def forge(
     return path
 
 
+MILLIONS = "agents:\n  n: 8000000\nsim:\n  dt: 0.02\n  t_final: 0.04\n"  # a lie: 8 M robots
+
+
+def bomb(path: Path, config: str, robots: int, declared: int | None = None) -> Path:
+    """A log whose one chunk holds one poses message of ``robots`` robots, compressed
+    as it streams (never whole in memory): a few kB of file for 69 bytes per robot.
+    The chunk's header declares ``declared`` uncompressed bytes (default: the truth;
+    a smaller one is a lie that the zstd frame's own content size then tells).
+    """
+    head = poses_message(0.0, np.zeros((2, 0)), np.zeros((2, 0)))
+    pose = poses_message(0.0, np.zeros((2, 1)), np.array([[1.0], [0.0]]))[len(head) :]
+    data_size = len(head) + robots * len(pose)
+    size = 9 + 22 + data_size  # the message record: opcode, length, its fields, data
+    record = struct.pack("<BQHIQQ", Opcode.MESSAGE, 22 + data_size, 1, 0, 0, 0) + head
+    piece = pose * 16384
+    write_size = declared is not None
+    packer = zstandard.ZstdCompressor(write_content_size=write_size).compressobj(
+        size=size if write_size else -1
+    )
+    parts, crc = [packer.compress(record)], zlib.crc32(record)
+    left = robots
+    while left:
+        n = min(left, 16384)
+        block = piece if n == 16384 else pose * n
+        parts.append(packer.compress(block))
+        crc = zlib.crc32(block, crc)
+        left -= n
+    parts.append(packer.flush())
+    b = RecordBuilder()
+    Header(profile="", library="forger").write(b)
+    Metadata(name="config", metadata={"yaml": config}).write(b)
+    Metadata(name="status", metadata={"state": "completed"}).write(b)
+    Schema(id=1, name="foxglove.PosesInFrame", encoding="protobuf", data=b"").write(b)
+    Channel(
+        id=1, topic="/swarm/poses", message_encoding="protobuf", metadata={}, schema_id=1
+    ).write(b)
+    Chunk(
+        compression="zstd",
+        data=b"".join(parts),
+        message_start_time=0,
+        message_end_time=0,
+        uncompressed_crc=crc,
+        uncompressed_size=size if declared is None else declared,
+    ).write(b)
+    DataEnd(data_section_crc=0).write(b)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(b)
+    path.write_bytes(MCAP0_MAGIC + b.end() + MCAP0_MAGIC)
+    return path
+
+
+@pytest.mark.parametrize("declared", [None, 4096], ids=["declared", "understated"])
+def test_a_config_record_claiming_millions_of_robots_cannot_make_a_small_log_cost_gigabytes(
+    tmp_path, declared
+):
+    path = bomb(tmp_path / "run.mcap", MILLIONS, robots=8_000_000, declared=declared)
+    assert path.stat().st_size < 100_000  # 552 MB of poses claimed
+    tracemalloc.start()
+    try:
+        with pytest.warns(LogWarning, match="decompressed bytes per byte"):
+            run = load_run(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert run.poses == [] and "not read" in run.recovery
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB to read a log of {path.stat().st_size} bytes"
+
+
+def test_a_config_record_claiming_millions_of_robots_does_not_lift_the_points_per_byte(
+    tmp_path,
+):
+    path = forge(tmp_path / "run.mcap", MILLIONS, repeats=3, huge=200_000)
+    size = path.stat().st_size
+    assert 200_000 > 4 * size  # more poses than 4 per byte of the file, fewer than claimed
+    with pytest.warns(LogWarning, match="points per byte"):
+        run = load_run(path)
+    assert sum(p.shape[0] for p in run.poses) <= 4 * size
+    assert all(p.shape == (ROBOTS, 3) for p in run.poses)
+
+
 def test_a_log_claiming_more_poses_than_its_robots_and_steps_is_read_within_them(tmp_path):
     path = forge(tmp_path / "run.mcap", CONFIG, repeats=1000, huge=100 * ROBOTS)
     assert path.stat().st_size < 200_000  # 220 000 poses claimed
     tracemalloc.start()
     try:
-        with pytest.warns(LogWarning, match="more than the log's config allows"):
+        with pytest.warns(LogWarning, match="more than the log's config and size allow"):
             run = load_run(path)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
@@ -73,8 +158,9 @@ def test_a_log_claiming_more_poses_than_its_robots_and_steps_is_read_within_them
 
 
 def test_a_log_without_a_config_record_is_bounded_by_its_size(tmp_path):
-    path = forge(tmp_path / "run.mcap", None, repeats=200, huge=ROBOTS, robots=5000, chunk=1 << 27)
+    path = forge(tmp_path / "run.mcap", None, repeats=100, huge=ROBOTS, robots=5000, chunk=1 << 27)
     size = path.stat().st_size
+    assert 100 * 5000 > 4 * size  # more points than the size allows, in one chunk of 35 MB
     with pytest.warns(LogWarning, match="points per byte"):
         run = load_run(path)
     assert sum(p.shape[0] for p in run.poses) <= 4 * size

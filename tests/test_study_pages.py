@@ -2,12 +2,16 @@
 CSV, a placeholder that matches no point refused, and the committed pages up to date."""
 
 import csv
+import os
+import struct
+import zlib
 from pathlib import Path
 
 import pytest
 
 from analysis import study_pages as sp
-from analysis.study_data import read_inputs
+from analysis.study_data import PNG_SIGNATURE, declared_figure, png_problem, read_inputs
+from tests.test_floor_cache_hostile import Unblocker
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -47,6 +51,22 @@ agents.n=1024|4096}}; gain {{gain phi_sup / eps_sup @ law=paper : .3f}}.
 """
 
 
+def _chunk(kind: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+
+def png(width: int = 2, height: int = 2) -> bytes:
+    """A whole grey PNG of ``width`` x ``height`` pixels."""
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    pixels = b"".join(b"\0" + b"\x80" * width for _ in range(height))
+    return (
+        PNG_SIGNATURE
+        + _chunk(b"IHDR", header)
+        + _chunk(b"IDAT", zlib.compress(pixels))
+        + _chunk(b"IEND", b"")
+    )
+
+
 def make_study(tmp_path: Path, template: str | None = TEMPLATE, name: str = "mine"):
     figures, docs = tmp_path / "figures", tmp_path / "docs"
     (figures / name).mkdir(parents=True)
@@ -54,7 +74,7 @@ def make_study(tmp_path: Path, template: str | None = TEMPLATE, name: str = "min
         writer = csv.DictWriter(f, fieldnames=list(ROWS[0]))
         writer.writeheader()
         writer.writerows(ROWS)
-    (figures / name / "convergence.png").write_bytes(b"\x89PNG\r\n\x1a\nfake")
+    (figures / name / "convergence.png").write_bytes(png())
     (docs / "studies").mkdir(parents=True)
     if template is not None:
         (docs / "studies" / f"{name}.in.md").write_text(template)
@@ -76,7 +96,7 @@ def test_a_page_takes_every_number_from_its_data(tmp_path):
     assert "python -m analysis.study_pages mine" in page and "data/mine.csv" in page
     assert "{{" not in page
     assert study.data.read_text() == (study.figures / "mine" / "sweep_aggregated.csv").read_text()
-    assert study.image.read_bytes().startswith(b"\x89PNG")
+    assert study.image.read_bytes() == png()
 
 
 @pytest.mark.parametrize(
@@ -157,9 +177,13 @@ GOOD_DATA = b"law,jobs,swarm_ratio_mean\r\npaper,2,1.07\r\n"
         (b"law,jobs,swarm_ratio_mean\r\n", "without rows"),
         (b"law,jobs,swarm_ratio_mean\r\npaper,2,\xff\xfe1.0\r\n", "not UTF-8"),
         (b'law,jobs,swarm_ratio_mean\r\n"paper,2,1.0\r\n', "cut short"),
+        (b"law,jobs,swarm_ratio_mean\r\npaper,2,\x001.1\r\n", "control character (U+0000)"),
+        (b"law,jobs,swarm_ratio_mean\r\npaper\x1b,2,1.1\r\n", "control character (U+001B)"),
+        (b"law,jobs,swarm_ratio_mean\r\npaper,2,1.1\x7f\r\n", "control character (U+007F)"),
+        ("law,jobs,swarm_ratio_mean\npaper,2,1.1\x85\n".encode(), "control character (U+0085)"),
     ],
     ids=["empty", "cut-mid-row", "short-row", "cut-header", "foreign", "header-only",
-         "not-utf8", "open-quote"],
+         "not-utf8", "open-quote", "nul", "escape", "delete", "c1-next-line"],
 )  # fmt: skip
 def test_a_bad_aggregated_csv_is_refused_in_one_line_before_anything_is_written(
     tmp_path, capsys, data, why
@@ -206,3 +230,143 @@ def test_a_new_csv_is_written_only_when_its_page_renders(tmp_path, capsys):
     args = [study.name, "--figures", str(study.figures), "--docs", str(study.docs)]
     assert sp.main(args) == 2
     assert study.data.read_bytes() == GOOD_DATA and not study.page.exists()
+
+
+def test_the_committed_figures_are_whole_pngs():
+    figures = sorted((DOCS / "sweeps").glob("*.png"))
+    assert figures
+    assert {f.name: png_problem(f.read_bytes()) for f in figures} == {f.name: "" for f in figures}
+
+
+def _cut(data: bytes) -> bytes:
+    return data[:100]
+
+
+def _signature_only(data: bytes) -> bytes:
+    return PNG_SIGNATURE
+
+
+def _no_iend(data: bytes) -> bytes:
+    return data[:-12]
+
+
+def _flipped(data: bytes) -> bytes:
+    at = len(data) // 2  # inside the IDAT chunk: its CRC no longer matches
+    return data[:at] + bytes([data[at] ^ 1]) + data[at + 1 :]
+
+
+def _trailing(data: bytes) -> bytes:
+    return data + b"<html>"
+
+
+def _no_ihdr(data: bytes) -> bytes:
+    return PNG_SIGNATURE + data[len(PNG_SIGNATURE) + 25 :]  # the IHDR chunk (25 bytes) left out
+
+
+def _long_chunk(data: bytes) -> bytes:
+    start = len(PNG_SIGNATURE) + 25  # the IDAT's length: past the end of the file
+    return data[:start] + struct.pack(">I", 1 << 30) + data[start + 4 :]
+
+
+@pytest.mark.parametrize(
+    "damage, why",
+    [
+        (_cut, "cut short"),
+        (_signature_only, "cut short"),
+        (_no_iend, "no IEND"),
+        (_flipped, "fails its CRC"),
+        (_trailing, "after its IEND"),
+        (_no_ihdr, "not a 13-byte IHDR"),
+        (_long_chunk, "runs past the end"),
+    ],
+    ids=["cut-at-100-bytes", "signature-only", "no-iend", "flipped-byte", "trailing-bytes",
+         "no-ihdr", "chunk-longer-than-file"],
+)  # fmt: skip
+def test_a_png_cut_short_or_damaged_is_refused_and_the_old_figure_kept(
+    tmp_path, capsys, damage, why
+):
+    study = make_study(tmp_path)
+    good = (DOCS / "sweeps" / "link.png").read_bytes()  # a figure matplotlib wrote
+    assert png_problem(good) == ""
+    study.image.parent.mkdir(parents=True)
+    study.image.write_bytes(good)
+    (study.figures / study.name / "convergence.png").write_bytes(damage(good))
+    args = [study.name, "--figures", str(study.figures), "--docs", str(study.docs)]
+    assert sp.main(args) == 2
+    err = capsys.readouterr().err
+    assert "not a PNG image" in err and why in err and len(err.strip().splitlines()) == 1, err
+    assert study.image.read_bytes() == good
+    assert not study.page.exists() and not study.data.exists()
+
+
+@pytest.mark.parametrize(
+    "kind, why",
+    [
+        ("fifo", "a FIFO"),
+        ("device", "a character device"),
+        ("not-utf8", "not utf-8 text"),
+        ("huge", "more than the"),
+        ("bad-front-matter", "front matter is not YAML"),
+    ],
+)
+def test_a_template_that_is_not_a_readable_utf8_file_is_refused_in_one_line(
+    tmp_path, capsys, kind, why
+):
+    study = make_study(tmp_path)
+    template = study.template
+    if kind == "fifo":
+        template.unlink()
+        os.mkfifo(template)  # an open() for reading would wait for a writer
+    elif kind == "device":
+        template.unlink()
+        template.symlink_to("/dev/zero")  # endless
+    elif kind == "not-utf8":
+        template.write_bytes(TEMPLATE.encode() + b"\xff\xfe")
+    elif kind == "huge":
+        template.write_text(TEMPLATE + "x" * (2 << 20))
+    else:
+        template.write_text("---\ntable: [unclosed\n---\n# A study\n")
+    args = [study.name, "--figures", str(study.figures), "--docs", str(study.docs)]
+    with Unblocker(template, after_s=5.0) as watchdog:
+        code = sp.main(args)
+    assert not watchdog.used, "the template was opened as a FIFO and waited on"
+    err = capsys.readouterr().err
+    assert code == 2 and why in err and len(err.strip().splitlines()) == 1, err
+    assert str(template) in err
+    assert not study.page.exists() and not study.data.exists() and not study.image.exists()
+
+
+@pytest.mark.parametrize(
+    "preset, why",
+    [
+        ("fifo", "a FIFO"),
+        (b"analysis: {figure: [unclosed\n", "not a YAML preset"),
+        (b"- a list\n", "not a preset"),
+        (b"analysis: \xff\n", "not utf-8 text"),
+    ],
+    ids=["fifo", "bad-yaml", "not-a-mapping", "not-utf8"],
+)
+def test_a_preset_that_is_not_a_readable_yaml_mapping_is_refused_in_one_line(tmp_path, preset, why):
+    path = tmp_path / "conf" / "experiment" / "mine.yaml"
+    path.parent.mkdir(parents=True)
+    if preset == "fifo":
+        os.mkfifo(path)
+    else:
+        path.write_bytes(preset)
+    with Unblocker(path, after_s=5.0) as watchdog:
+        with pytest.raises(sp.PageError) as refused:
+            declared_figure("mine", tmp_path / "conf")
+    assert not watchdog.used
+    assert why in str(refused.value) and "\n" not in str(refused.value)
+
+
+def test_nothing_is_written_when_any_study_asked_for_is_refused(tmp_path, capsys):
+    good = make_study(tmp_path, name="first")  # renders alone
+    (good.figures / "second").mkdir()
+    (good.figures / "second" / "sweep_aggregated.csv").write_bytes(b"law,jobs\r\n")  # refused
+    (good.docs / "studies" / "second.in.md").write_text(TEMPLATE)
+    args = ["first", "second", "--figures", str(good.figures), "--docs", str(good.docs)]
+    assert sp.main(args) == 2
+    assert "second" in capsys.readouterr().err
+    assert not good.page.exists() and not good.data.exists() and not good.image.exists()
+    assert sp.main(args[:1] + args[2:]) == 0 and good.page.exists()

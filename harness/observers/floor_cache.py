@@ -37,7 +37,8 @@ a regular file, opened without blocking, at most :data:`RECORD_BYTES`. It is use
 when it parses, its inputs equal the requested ones, its key is theirs, the checksum
 matches its floors and the floors are what the computation gives (:func:`floor_problem`:
 the keys of :data:`FLOOR_KEYS`, finite numbers ``>= 0`` in their shortest round-trip
-form, the requested draws and transport method); otherwise a :class:`FloorCacheWarning`
+form, each band ordered ``lo <= mean <= hi``, the requested draws and transport
+method); otherwise a :class:`FloorCacheWarning`
 says why, and the floors are computed and the file rewritten. Floors that are not what
 the computation gives are never stored. A file or directory that cannot be read or
 written costs a warning and the computation, never the run. JSON only, never a
@@ -94,7 +95,8 @@ BANDS = ("swarm_l2", "swarm_w2")
 
 BAND_NUMBERS = ("mean", "lo", "hi")
 """The numbers of a floor's band (:class:`harness.observers.swarm_metrics.Band`): the
-mean and the 2.5 and 97.5 percentiles of a distance, each finite and ``>= 0``."""
+mean and the 2.5 and 97.5 percentiles of a distance, each finite and ``>= 0``, with
+``lo <= mean <= hi``."""
 
 
 FLOOR_KEYS = frozenset(
@@ -361,7 +363,12 @@ def floor_problem(floors: object, inputs: dict[str, Any]) -> str:
     (empty when nothing does): a mapping of strings with exactly the keys
     :data:`FLOOR_KEYS`; the transport method of the inputs' measure; each distance's
     draws the inputs' ``draws``; each number of :data:`BAND_NUMBERS` finite, ``>= 0``
-    and written as its shortest round-trip ``repr``.
+    with a positive sign (distances are never ``-0.0``) and written as its shortest
+    round-trip ``repr``; each band ordered, ``lo <= mean <= hi``.
+
+    The mean of the draws lies outside its 2.5 and 97.5 percentiles only for a
+    distribution of the distance far more skewed than a floor's: such floors are used
+    by the run that computed them but never stored, so the next run computes them again.
     """
     if not isinstance(floors, dict) or not all(isinstance(v, str) for v in floors.values()):
         return "the floors are not a mapping of strings"
@@ -383,8 +390,13 @@ def floor_problem(floors: object, inputs: dict[str, Any]) -> str:
                 value = float(text)
             except ValueError:
                 value = math.nan
-            if not (math.isfinite(value) and value >= 0 and repr(value) == text):
+            if not (math.isfinite(value) and math.copysign(1.0, value) > 0 and repr(value) == text):
                 return f"{band}_floor_{number} is {text[:40]!r}, not a finite number >= 0"
+        mean, lo, hi = (float(floors[f"{band}_floor_{number}"]) for number in BAND_NUMBERS)
+        if not lo <= hi:
+            return f"the {band} band is inverted (lo {lo!r} > hi {hi!r})"
+        if not lo <= mean <= hi:
+            return f"the {band} mean {mean!r} is outside its band [{lo!r}, {hi!r}]"
     return ""
 
 

@@ -205,11 +205,12 @@ def _file_digest(digest: Any, name: str) -> None:
         digest.update(f"unreadable: {err}".encode(errors="surrogateescape"))
 
 
-def _source_sha256() -> str:
-    """SHA-256 of the code and config files of :data:`CODE_DIRS` (:func:`is_code`),
-    names and contents: the code's identity when git does not hold the project.
+def _code_names() -> list[str]:
+    """The code files (:func:`is_code`) under :data:`CODE_DIRS` in the working tree,
+    sorted, as paths relative to :data:`ROOT`: whatever is there (anything but a
+    directory; symbolic links to directories are not followed), never what an index or
+    a VCS says is there.
     """
-    digest = hashlib.sha256()
     names = []
     for folder in CODE_DIRS:
         base = ROOT / folder
@@ -219,16 +220,25 @@ def _source_sha256() -> str:
             name = path.relative_to(ROOT).as_posix()
             if is_code(name) and not path.is_dir():
                 names.append(name)
-    for name in sorted(names):
+    return sorted(names)
+
+
+def _source_sha256() -> str:
+    """SHA-256 of the code and config files of :data:`CODE_DIRS` (:func:`_code_names`),
+    names and contents: the code's identity when git does not hold the project.
+    """
+    digest = hashlib.sha256()
+    for name in _code_names():
         _file_digest(digest, name)
     return digest.hexdigest()
 
 
-def _git_holds_project() -> str | None:
-    """The commit of :data:`ROOT` when git holds the project there: the top level of
-    the repository that contains :data:`ROOT` is :data:`ROOT` itself (not a checkout
-    around a copy of the project or around an installation) and it tracks the code
-    (files of :data:`CODE_DIRS`) at that commit; None otherwise.
+def _git_holds_project() -> tuple[str, dict[str, tuple[str, str]]] | None:
+    """The commit of :data:`ROOT` and its code files (:func:`_committed_code`) when git
+    holds the project there: the top level of the repository that contains :data:`ROOT`
+    is :data:`ROOT` itself (not a checkout around a copy of the project or around an
+    installation) and it tracks the code (files of :data:`CODE_DIRS`) at that commit;
+    None otherwise.
     """
     top = _git("rev-parse", "--show-toplevel")
     if top == "unknown":
@@ -241,40 +251,92 @@ def _git_holds_project() -> str | None:
     commit = _git("rev-parse", "--verify", "HEAD^{commit}")
     if commit == "unknown":
         return None
-    tracked = _git("ls-tree", "-r", "--name-only", "-z", "HEAD", "--", *CODE_DIRS, text=False)
-    if not isinstance(tracked, bytes) or not any(
-        is_code(n.decode(errors="surrogateescape")) for n in tracked.split(b"\0") if n
-    ):
+    committed = _committed_code(str(commit))
+    if not committed:
         return None
-    return str(commit)
+    return str(commit), committed
 
 
-def _code_changes() -> str:
-    """``clean`` when the code files (:func:`is_code`) are those of the commit, else
-    SHA-256 of ``git diff HEAD`` over the tracked code files and of the names and
-    contents of the code files git does not track (ignored ones included: ignoring a
-    file does not make it less the code). Any other file, tracked or not (notes,
-    documentation, a floor cache or outputs in the checkout), is not the code.
+def _committed_code(commit: str) -> dict[str, tuple[str, str]] | None:
+    """The code files (:func:`is_code`) of ``commit``: name -> (mode, blob id), from
+    ``git ls-tree`` (the commit's own tree: replacement objects are ignored, and neither
+    the index nor git's diff configuration enters); None when git cannot list them.
     """
-    changed = _git("diff", "HEAD", "--name-only", "-z", "--", *CODE_DIRS, text=False)
-    others = _git("ls-files", "--others", "-z", "--", *CODE_DIRS, text=False)
-    if not isinstance(changed, bytes) or not isinstance(others, bytes):
-        return "unknown"
-    decode = [n.decode(errors="surrogateescape") for n in changed.split(b"\0") if n]
-    tracked = sorted(n for n in decode if is_code(n))
-    untracked = sorted(
-        n
-        for n in (o.decode(errors="surrogateescape") for o in others.split(b"\0") if o)
-        if is_code(n)
+    listing = _git(
+        "--no-replace-objects", "ls-tree", "-r", "-z", commit, "--", *CODE_DIRS, text=False
     )
-    if not tracked and not untracked:
+    if not isinstance(listing, bytes):
+        return None
+    files = {}
+    for entry in listing.split(b"\0"):
+        meta, tab, raw = entry.partition(b"\t")
+        fields = meta.split()
+        if not tab or len(fields) != 3 or fields[1] != b"blob":
+            continue  # a submodule (commit) entry is not a file of this checkout
+        name = raw.decode(errors="surrogateescape")
+        if is_code(name):
+            files[name] = (fields[0].decode(), fields[2].decode())
+    return files
+
+
+def _blob_id(data: bytes, like: str) -> str:
+    """Git's id of a blob holding ``data``, in the object format of the id ``like``
+    (SHA-1, 40 hex digits, or SHA-256, 64).
+    """
+    algorithm = hashlib.sha256 if len(like) == 64 else hashlib.sha1
+    return algorithm(b"blob %d\0" % len(data) + data).hexdigest()
+
+
+def _unchanged(name: str, committed: tuple[str, str] | None) -> bool:
+    """Whether the working tree's ``name`` holds exactly the bytes of its committed
+    blob ``committed`` (mode, blob id): a symbolic link the same target, any other file a
+    regular file with the same bytes (read through :mod:`harness.files`; a file that
+    cannot be read has changed). The executable bit is not compared.
+    """
+    if committed is None:
+        return False
+    mode, blob = committed
+    path = ROOT / name
+    try:
+        if mode == "120000":
+            data = os.fsencode(os.readlink(path))
+        elif os.path.islink(path):
+            return False
+        else:
+            data = read_bytes(path, MAX_CODE_FILE)
+    except OSError:  # UnreadableFile included: missing, not a regular file, too large
+        return False
+    return _blob_id(data, blob) == blob
+
+
+def _code_changes(committed: dict[str, tuple[str, str]]) -> str:
+    """``clean`` when the code files (:func:`is_code`) of the working tree are the
+    commit's ``committed`` files (:func:`_committed_code`), else SHA-256 of the names
+    and contents of the code files that differ: modified, deleted (entered as absent),
+    or not in the commit (untracked, staged or ignored: ignoring a file does not make it
+    less the code).
+
+    Each file's bytes are compared with its committed blob directly (:func:`_unchanged`),
+    never through git's index or ``git diff``: index flags (``skip-worktree``,
+    ``assume-unchanged``), a stale index, and the user's or the repository's diff
+    configuration (``diff.external``, textconv drivers, colour) do not enter, so the
+    result is the same for the same bytes and changes whenever a code file's bytes
+    change. Any other file, tracked or not (notes, documentation, a floor cache or
+    outputs in the checkout), is not the code.
+    """
+    changed = sorted(
+        name
+        for name in set(_code_names()) | set(committed)
+        if not _unchanged(name, committed.get(name))
+    )
+    if not changed:
         return "clean"
     digest = hashlib.sha256()
-    if tracked:
-        diff = _git("diff", "HEAD", "--binary", "--", *tracked, text=False)
-        digest.update(diff if isinstance(diff, bytes) else str(diff).encode())
-    for name in untracked:
-        _file_digest(digest, name)
+    for name in changed:
+        if os.path.lexists(ROOT / name):
+            _file_digest(digest, name)
+        else:
+            digest.update(name.encode(errors="surrogateescape") + b"\0absent\0")
     return digest.hexdigest()
 
 
@@ -285,21 +347,23 @@ def code_identity() -> dict[str, str]:
 
     Git says which code only when it holds the project (:func:`_git_holds_project`:
     the repository's top level is :data:`ROOT` and it tracks the code); then
-    ``git_diff_sha256`` is ``clean`` or the hash of the changed code
-    (:func:`_code_changes`) and ``git_dirty`` whether the code changed. Otherwise (an
+    ``git_diff_sha256`` is ``clean`` or the hash of the changed code files, each
+    compared byte for byte with the commit's blob (:func:`_code_changes`: git's index
+    and diff configuration never enter), and ``git_dirty`` whether the code changed. Otherwise (an
     installed package, a copy of the project inside another checkout, no git)
     ``git_commit`` and ``git_dirty`` are ``unknown`` and ``git_diff_sha256`` is
     ``source:`` and the hash of the code files themselves (:func:`_source_sha256`).
     """
-    commit = _git_holds_project()
-    changes = "unknown" if commit is None else _code_changes()
-    if commit is None or changes == "unknown":
+    held = _git_holds_project()
+    if held is None:
         info = {
             "git_commit": "unknown",
             "git_dirty": "unknown",
             "git_diff_sha256": f"source:{_source_sha256()}",
         }
     else:
+        commit, committed = held
+        changes = _code_changes(committed)
         dirty = str(changes != "clean").lower()
         info = {"git_commit": commit, "git_dirty": dirty, "git_diff_sha256": changes}
     info["python"] = sys.version.split()[0]
