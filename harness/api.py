@@ -58,9 +58,11 @@ is not evaluated at that step or does not apply to the loop)."""
 def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> DictConfig:
     """The config the command line composes from ``overrides``.
 
-    Of Hydra's own node ``hydra`` only ``hydra.runtime.choices`` is kept (the option
-    chosen in each config group, which the log records, :func:`harness.runs.identity.choices`);
-    the rest is left out, as in the config a command-line run receives.
+    Of Hydra's own node ``hydra`` only ``hydra.runtime.choices`` (the option chosen in
+    each config group, which the log records, :func:`harness.runs.identity.choices`) and
+    ``hydra.overrides.task`` (the overrides, from which the build reads an observer list
+    as written, :func:`harness.runs.identity.chosen_observers`) are kept; the rest is
+    left out, as in the config a command-line run receives.
     Works repeatedly in one process, from any current directory, and inside a running
     Hydra app or an initialised Hydra (whose global state is set aside and restored).
 
@@ -89,8 +91,9 @@ def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> 
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
             full = hydra_compose(config_name, overrides=list(overrides), return_hydra_config=True)
             chosen = OmegaConf.to_container(full.hydra.runtime.choices, resolve=False)
+            task = OmegaConf.to_container(full.hydra.overrides.task, resolve=False)
             with open_dict(full):
-                full.hydra = {"runtime": {"choices": chosen}}
+                full.hydra = {"runtime": {"choices": chosen}, "overrides": {"task": task}}
             return full
     finally:
         global_hydra = GlobalHydra.instance()

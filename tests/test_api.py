@@ -45,9 +45,12 @@ def test_compose_is_the_config_of_the_command_line(tmp_path):
     assert proc.returncode == 0, proc.stderr
     cfg = api.compose(overrides)
     composed = OmegaConf.to_container(cfg)
-    # of Hydra's node only the choices, which the command line's --cfg job leaves out
+    # of Hydra's node only the choices and the overrides, which --cfg job leaves out
     hydra = composed.pop("hydra")
-    assert hydra == {"runtime": {"choices": hydra["runtime"]["choices"]}}
+    assert hydra == {
+        "runtime": {"choices": hydra["runtime"]["choices"]},
+        "overrides": {"task": overrides},
+    }
     assert hydra["runtime"]["choices"]["control"] == "heat"
     assert hydra["runtime"]["choices"]["experiment"] == "smoke"
     assert composed == yaml.safe_load(proc.stdout)

@@ -122,6 +122,102 @@ def test_the_guard_requires_only_metrics_an_observer_before_it_gives(refusal):
         assert refusal([*TINY, fine]) is None, fine
 
 
+UNCADENCED = [o for o in TINY if not o.startswith("log.positions_every")]
+"""TINY without its cadence of the swarm metrics (every step)."""
+
+CADENCED = [
+    (["log.positions_every=10", "observers.guard.required=[swarm_l2]"], "log.positions_every=10"),
+    (["log.positions_every=10", "observers.guard.required=[swarm_l2,swarm_l2]"],
+     "log.positions_every=10"),
+    (["log.positions_every=3", "observers.guard.required=[t,est_swarm_l2]"],
+     "log.positions_every=3"),
+    (["log.positions_every=1", "log.w2_every=5", "observers.guard.required=[swarm_w2]"],
+     "log.w2_every=5"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("overrides,cadence", CADENCED, ids=[o[-1] for o, _ in CADENCED])
+def test_the_guard_requires_only_metrics_given_at_every_step(tmp_path, compose, overrides, cadence):
+    """``swarm`` gives its metrics at its cadence: a guard requiring one at every step
+    would end the run at the first step without it."""
+    line = runs_or_is_refused(compose, [*UNCADENCED, *overrides], tmp_path / "run")
+    assert line.startswith("invalid config: observers.guard.required=["), line
+    assert f"only every {cadence.split('=')[1]} steps, {cadence}" in line, line
+
+
+def test_a_metric_given_at_every_step_may_be_required(refusal):
+    for fine in (
+        ["log.positions_every=1", "log.w2_every=1", "observers.guard.required=[swarm_w2]"],
+        ["log.positions_every=10", "observers.guard.required=[phat_smoothed_target_l2]"],
+    ):
+        assert refusal([*UNCADENCED, *fine]) is None, fine
+
+
+LOG_WITHOUT_METRICS = ["observers=[log]", "observers=[log,metrics]", "observers=[guard,log]"]
+
+
+@pytest.mark.parametrize("observers", LOG_WITHOUT_METRICS)
+def test_a_log_without_the_metrics_it_writes_every_step_is_refused(tmp_path, compose, observers):
+    """The logger needs the log contract's always-numbers at every step from an
+    observer before it: without them the log would read back as damaged."""
+    line = runs_or_is_refused(compose, [*TINY, observers], tmp_path / "run")
+    assert line.startswith("invalid config: observers"), line
+    assert "none gives t, phi_l2" in line, line
+
+
+def test_a_log_after_the_metrics_runs(refusal):
+    assert refusal([*TINY, "observers=[metrics,log]"]) is None
+
+
+NAMED_TWICE = [
+    ("observers=[log,log]", "log comes twice)"),
+    ("observers=[metrics,log,log]", "log comes twice)"),
+    ("observers=[metrics,log,metrics]", "metrics comes twice)"),
+    ("observers=[default,log]", "log comes twice; default holds it)"),
+    ("observers=[default,default]", "metrics comes twice; default holds it)"),
+]
+
+
+@pytest.mark.parametrize("observers,why", NAMED_TWICE, ids=[o for o, _ in NAMED_TWICE])
+def test_an_observer_named_twice_is_refused(tmp_path, compose, observers, why):
+    """Hydra merges an observer named twice into one: the run would not be the list."""
+    line = runs_or_is_refused(compose, [*TINY, observers], tmp_path / "run")
+    named = observers.split("=")[1].strip("[]").split(",")
+    assert line == (
+        f"invalid config: observers={named!r}: a list that names each observer once ({why}"
+    ), line
+
+
+def test_observer_lists_naming_each_once_are_accepted(refusal):
+    from harness.runs.build import OBSERVER_OPTIONS
+
+    assert OBSERVER_OPTIONS == CONFIG_DIR / "observers"
+    for fine in ("observers=[default]", "observers=[metrics,guard,log]"):
+        assert refusal([*TINY, fine]) is None, fine
+
+
+@pytest.mark.parametrize(
+    "bad",
+    ["observers.guard.required=[swarm_l2]", "observers=[log,log]", "observers=[log]"],
+)
+def test_observers_refused_on_the_command_line_exit_2_in_one_line(tmp_path, bad):
+    out = tmp_path / "run"
+    cadence = "log.positions_every=10"
+    proc = subprocess.run(
+        [sys.executable, "-m", "experiments.closed_loop", *UNCADENCED, cadence, bad,
+         f"hydra.run.dir={out}"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    key = bad.split("=")[0]
+    assert proc.stderr.startswith(f"invalid config: {key}="), proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+    assert not out.exists()
+
+
 # ------------------------------------------------- copies of agents.n and sim.dt
 COPIES = [
     (["control=ot", "control.robots=5"], "control.robots"),

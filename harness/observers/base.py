@@ -23,9 +23,11 @@ observers before fill and the ones after read: the metric observers add their ke
 guard checks them, the logger writes them. Observers that compute come before those that
 show; those that only compute say so (``computes = True``, :func:`computes`), and an
 in-memory simulation (:func:`harness.api.simulate`) runs just them. An observer that
-computes says which metrics it adds (``gives``), one that reads metrics it must have says
-which (``needs``): a run whose observers need a metric no observer before them gives is
-refused before it starts. A run writes its log through the observer that says so
+computes says which metrics it adds (``gives``) and which of them only at a cadence
+(``at_cadence``), one that reads metrics it must have at every step says which
+(``needs``: the guard's ``required``, the logger's always-numbers): a run whose observers
+need a metric that no observer before them gives at every step is refused before it
+starts. A run writes its log through the observer that says so
 (``writes_log``); a run without one is refused (:func:`harness.runs.run.check_writes_log`).
 An observer that acts every so many steps keeps a :class:`Cadence`. Run-time arguments
 an observer's constructor may name (the builder passes the ones it names): ``grid``, ``target``,
@@ -139,12 +141,24 @@ def gives(observer: Observer) -> frozenset[str] | None:
     return frozenset(names)
 
 
-def needs(observer: Observer) -> dict[str, tuple[str, ...]]:
-    """The metric names ``observer`` must find in a step's values, filled by the observers
-    before it, by the parameter that names them (its optional ``needs``: the divergence
-    guard's ``{"required": (...)}``); empty for an observer that needs none.
+def at_cadence(observer: Observer) -> dict[str, str]:
+    """The metrics of :func:`gives` that ``observer`` adds only at a cadence (a number at
+    some steps, null at the others), each with the parameter that sets the cadence (its
+    optional ``at_cadence``: the swarm observer's ``{"swarm_l2": "every", ...}`` when
+    ``every`` is above 1); the others it gives are there at every step.
     """
-    return {str(k): tuple(v) for k, v in dict(getattr(observer, "needs", None) or {}).items()}
+    return {str(k): str(v) for k, v in dict(getattr(observer, "at_cadence", None) or {}).items()}
+
+
+def needs(observer: Observer) -> dict[str | None, tuple[str, ...]]:
+    """The metric names ``observer`` must find in every step's values, filled by the
+    observers before it at every step (:func:`at_cadence`), by the parameter that names
+    them (its optional ``needs``: the divergence guard's ``{"required": (...)}``), or
+    ``None`` for metrics it needs whatever its parameters (the logger's
+    ``{None: ALWAYS_NUMBERS}``, the log contract's); empty for an observer that needs none.
+    """
+    raw = dict(getattr(observer, "needs", None) or {})
+    return {None if k is None else str(k): tuple(v) for k, v in raw.items()}
 
 
 def writes_log(observer: Observer) -> bool:

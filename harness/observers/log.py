@@ -270,6 +270,14 @@ class McapLogger:
 
     writes_log = True  # the run's log (harness.observers.base.writes_log)
 
+    @property
+    def needs(self) -> dict[str | None, tuple[str, ...]]:
+        """The log contract's always-numbers, which every ``/metrics`` message carries
+        (:data:`ALWAYS_NUMBERS`): an observer before the logger must give them at every
+        step (:func:`harness.observers.base.needs`; the observer ``metrics`` does).
+        """
+        return {None: ALWAYS_NUMBERS}
+
     BYTES_PER_STEP = 400
     """Bytes of one ``/metrics`` message with its record header (JSON of 24 numbers)."""
 

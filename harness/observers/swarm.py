@@ -60,6 +60,10 @@ SWARM_KEYS = (
 """The swarm metrics (:meth:`SwarmTruth.measure`), in log order."""
 """The swarm metrics (null between their steps and without robots)."""
 
+ON_POSITIONS = ("swarm_l2", "est_swarm_l2", "limit_swarm_l2", "limit_target_l2")
+"""The swarm metrics computed every ``every`` steps (``swarm_w2`` every ``w2_every`` of
+those), from the robots' positions (:class:`SwarmTruth`)."""
+
 
 class SwarmTruth:
     """The swarm metrics (see the module docstring), from robot positions.
@@ -149,6 +153,16 @@ class SwarmTruth:
         # built: a sweep builds its jobs in the launcher's worker and forks each job from
         # it, so the worker loads them once instead of every job
         import ot  # noqa: F401
+
+    @property
+    def at_cadence(self) -> dict[str, str]:
+        """The swarm metrics given only at a cadence, each with the parameter that sets
+        it (:func:`harness.observers.base.at_cadence`): with ``every`` above 1 all but
+        ``phat_smoothed_target_l2``; else, with ``w2_every`` above 1, ``swarm_w2``.
+        """
+        if self.every > 1:
+            return dict.fromkeys((*ON_POSITIONS, "swarm_w2"), "every")
+        return {"swarm_w2": "w2_every"} if self.w2_every > 1 else {}
 
     def smoothed_at(self, t: float, cells: bool) -> tuple[np.ndarray, np.ndarray | None]:
         """``K_h p_*(t)`` exactly and, when ``cells``, the noise-free KDE of its cell

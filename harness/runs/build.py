@@ -18,6 +18,7 @@ import inspect
 import re
 import types
 import typing
+from pathlib import Path
 from typing import Any
 
 import hydra.utils
@@ -28,7 +29,7 @@ from omegaconf.errors import OmegaConfBaseException
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.loop import Experiment
-from harness.observers.base import Observer, gives, needs
+from harness.observers.base import Observer, at_cadence, gives, needs
 from harness.parameters import Incompatible, ParameterError
 from harness.plants.limit import Limit
 from harness.plants.link import whole_steps
@@ -52,7 +53,7 @@ from harness.runs.checks import (
     density_on_grid,
     target_on_grid,
 )
-from harness.runs.identity import RunIdentity, choices, resolved
+from harness.runs.identity import RunIdentity, choices, chosen_observers, resolved
 from harness.runs.resources import check_memory
 from harness.targets.densities import Density, Target
 from harness.targets.moving import check_path, moves
@@ -64,6 +65,12 @@ _UNEXPECTED = re.compile(r"unexpected keyword argument '(\w+)'")
 
 
 _MISSING = re.compile(r"missing \d+ required (?:keyword-only |positional )?arguments?: (.+)$")
+
+
+OBSERVER_OPTIONS = (Path(__file__).parents[1] / "conf" / "observers").resolve()
+"""The options of the config group ``observers`` (``observers/`` in
+:data:`harness.api.CONFIG_DIR`), read for the observers an option lists in its defaults
+(``default``)."""
 
 
 PROTOCOLS: dict[str, type] = {
@@ -278,6 +285,7 @@ def observers(
         return {}
     if not isinstance(node, DictConfig):
         raise ConfigError("observers", node, "a dict of observers (conf/observers/)")
+    _check_unique(cfg)
     out = {}
     for key in node.keys():
         name = str(key)
@@ -295,29 +303,120 @@ def observers(
 
 
 def _check_needs(cfg: DictConfig, watching: dict[str, Observer]) -> None:
-    """Every metric an observer needs (:func:`harness.observers.base.needs`: the guard's
-    ``required``) is given by an observer before it (:func:`~harness.observers.base.gives`);
-    not checked past an observer that computes without saying what it gives.
+    """Every metric an observer needs at every step (:func:`harness.observers.base.needs`:
+    the guard's ``required``, the logger's always-numbers) is given at every step by an
+    observer before it (:func:`~harness.observers.base.gives`, less what it gives only at
+    a cadence, :func:`~harness.observers.base.at_cadence`: ``swarm_l2`` with
+    ``log.positions_every`` above 1); not checked past an observer that computes without
+    saying what it gives.
+
+    A metric needed at every step must be given at every step, rather than checked only
+    on the steps its giver is due: a guard that skipped the steps without it would not
+    guard them, and a log would carry nulls where its contract promises numbers.
 
     Raises:
-        ConfigError: naming the parameter that names a metric no observer before gives.
+        ConfigError: naming the parameter that names a metric no observer before gives at
+            every step (``observers`` itself for the logger, whose place in the list is
+            what to change).
     """
-    given: set[str] = set()
+    every: set[str] = set()
+    sometimes: dict[str, tuple[str, str]] = {}  # metric -> (observer, cadence parameter)
+    names = list(watching)
     for name, observer in watching.items():
-        for param, names in needs(observer).items():
-            missing = [m for m in names if m not in given]
+        for param, metrics in needs(observer).items():
+            missing = [m for m in metrics if m not in every]
             if missing:
-                before = ", ".join(list(watching)[: list(watching).index(name)]) or "none"
-                raise ConfigError(
-                    public_key(cfg, f"observers.{name}", param),
-                    list(names),
-                    f"metrics that the observers before {name} ({before}) give "
-                    f"(none gives {', '.join(missing)})",
-                )
+                raise _not_given(cfg, names, name, param, metrics, missing, sometimes)
         more = gives(observer)
         if more is None:
             return  # what follows may need what this one gives: not known here
-        given |= more
+        slow = at_cadence(observer)
+        for metric in more:
+            if metric in slow:
+                sometimes.setdefault(metric, (name, slow[metric]))
+            else:
+                every.add(metric)
+
+
+def _not_given(
+    cfg: DictConfig,
+    names: list[str],
+    name: str,
+    param: str | None,
+    metrics: tuple[str, ...],
+    missing: list[str],
+    sometimes: dict[str, tuple[str, str]],
+) -> ConfigError:
+    """The refusal of :func:`_check_needs`: observer ``name`` needs ``missing`` (of
+    ``metrics``, named by its parameter ``param``) at every step.
+    """
+    before = ", ".join(names[: names.index(name)]) or "none"
+    why = []
+    for metric in missing:
+        if metric in sometimes:
+            giver, cadence = sometimes[metric]
+            key = public_key(cfg, f"observers.{giver}", cadence)
+            value = OmegaConf.select(cfg, f"observers.{giver}.{cadence}", default="?")
+            why.append(f"{giver} gives {metric} only every {value} steps, {key}={value}")
+    absent = [m for m in missing if m not in sometimes]
+    if absent:
+        why.append(f"none gives {', '.join(absent)}")
+    if param is None:
+        return ConfigError(
+            "observers",
+            names,
+            f"observers in which those before {name} ({before}) give at every step the "
+            f"metrics {name} needs ({'; '.join(why)}; observers=[default] does)",
+        )
+    return ConfigError(
+        public_key(cfg, f"observers.{name}", param),
+        list(metrics),
+        f"metrics that the observers before {name} ({before}) give at every step "
+        f"({'; '.join(why)})",
+    )
+
+
+def _check_unique(cfg: DictConfig) -> None:
+    """Each observer is named once in the observer list chosen (``observers=[...]`` on
+    the command line, :func:`harness.api.compose` or a sweep's job), counting those an
+    option of ``conf/observers/`` lists in its own defaults (``default``): Hydra merges an
+    observer named twice into one, so the run would not be the list written.
+
+    Raises:
+        ConfigError: naming ``observers``, with the list as written.
+    """
+    chosen = chosen_observers(cfg)
+    if chosen is None:
+        return
+    seen: dict[str, str] = {}
+    for option in chosen:
+        for observer in _expanded(option):
+            if observer in seen:
+                holds = {o for o in (seen[observer], option) if o != observer}
+                raise ConfigError(
+                    "observers",
+                    chosen,
+                    f"a list that names each observer once ({observer} comes twice"
+                    + "".join(f"; {o} holds it" for o in sorted(holds))
+                    + ")",
+                )
+            seen[observer] = option
+
+
+def _expanded(option: str, depth: int = 0) -> list[str]:
+    """The observers of ``option``: itself, or for an option of ``conf/observers/`` that
+    lists others in its defaults (``default``), theirs.
+    """
+    path = OBSERVER_OPTIONS / f"{option}.yaml"
+    try:
+        node = OmegaConf.load(path) if path.is_file() else None
+    except Exception:  # Hydra reports a file it cannot read
+        node = None
+    listed = node.get("defaults") if isinstance(node, DictConfig) else None
+    inner = [d for d in listed or () if isinstance(d, str) and d != "_self_"]
+    if not inner or depth >= 8:
+        return [option]
+    return [name for d in inner for name in _expanded(d, depth + 1)]
 
 
 def resolve(cfg: DictConfig) -> dict[str, Any]:

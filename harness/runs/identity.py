@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from harness.files import UnreadableFile, read_bytes
 from harness.runs.checks import PRESENTATION_KEYS
@@ -101,6 +101,45 @@ def choices(cfg: DictConfig) -> dict[str, str]:
         for group, option in sorted(raw.items())
         if not str(group).startswith("hydra/") and str(group) != "hydra"
     }
+
+
+def task_overrides(cfg: DictConfig) -> list[str]:
+    """The overrides the config was composed with (Hydra's ``hydra.overrides.task``: the
+    command line's, a sweep job's, :func:`harness.api.compose`'s), from the config's
+    ``hydra`` node, else, for a config without one, from the running Hydra app; none for
+    a config made by hand.
+    """
+    node = OmegaConf.select(cfg, "hydra.overrides.task", default=None)
+    if node is None and "hydra" not in cfg:
+        from hydra.core.hydra_config import HydraConfig
+
+        if HydraConfig.initialized():
+            node = HydraConfig.get().overrides.task
+    raw = OmegaConf.to_container(node, resolve=False) if isinstance(node, ListConfig) else node
+    return [str(o) for o in raw] if isinstance(raw, list) else []
+
+
+def chosen_observers(cfg: DictConfig) -> list[str] | None:
+    """The options of the config group ``observers`` as the last override listing them
+    wrote them (``observers=[metrics,log,log]``: ``["metrics", "log", "log"]``, a
+    duplicate kept, which Hydra merges away and leaves out of :func:`choices`); None
+    when no override lists them.
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    chosen = None
+    for text in task_overrides(cfg):
+        key = text.split("=", 1)[0].lstrip("+~").split("@", 1)[0].strip()
+        if key != "observers":
+            continue
+        try:
+            (override,) = OverridesParser.create().parse_overrides([text])
+            value = override.value()
+        except Exception:  # Hydra took it; what it cannot parse here lists nothing
+            continue
+        if not override.is_delete() and isinstance(value, list):
+            chosen = [str(v) for v in value]
+    return chosen
 
 
 def resolved(cfg: DictConfig) -> dict[str, Any]:

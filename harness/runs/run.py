@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import errno
 import signal
+import sys
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from types import FrameType
+from typing import Any, NoReturn
 
 import numpy as np
 import scipy.sparse.linalg as spla
@@ -98,57 +100,158 @@ class StopRequest:
     finite-N floors). A second signal stops at once, but only inside the window (while
     the harness computes): never inside the logger or the log's finalisation, so a burst
     of signals cannot leave the log unfinalised.
+
+    The stop at once is a ``KeyboardInterrupt`` raised from whatever Python code runs
+    when the signal is handled, and code can swallow it: a ctypes callback (llvmlite's,
+    while numba compiles) prints it and drops it, and a library may turn it into an
+    error of its own (numba's ``RuntimeError: no compiled object yet``). The request
+    remembers that it raised, and until the interrupt leaves the window:
+
+    - every further signal raises it again;
+    - one dropped by a callback (seen by the hook for exceptions Python cannot raise,
+      ``sys.unraisablehook``, which then stays silent about it) is raised again at the
+      next Python call or return in the main thread outside this module
+      (``sys.setprofile``; not while another profiler is set), and so is a signal that
+      comes while the window itself enters or exits (never raised in this module's
+      code, so the window always restores its state);
+    - an exception that leaves the window in its place becomes the interrupt (chained
+      to it), and a window that ends without it raises it at its end;
+    - entering a window raises it.
+
+    So the run ends ``aborted`` with the interrupt as its reason, never with the error a
+    swallowed interrupt left behind.
     """
 
     def __init__(self) -> None:
         self.signals: list[int] = []
         self.interruptible = False
         self.interrupted = False
+        self._raised: BaseException | None = None
+        self._profile = self._again  # one bound method, to recognise it in sys.getprofile()
         self._previous: dict[int, Any] = {}
+        self._previous_hook: Callable[[Any], Any] | None = None
 
     def __call__(self, signum: int, frame: Any) -> None:
         """Record the signal; raise KeyboardInterrupt on a repeat inside the window
-        (once: later signals are only recorded).
+        (again on every repeat until the interrupt leaves the window).
         """
         self.signals.append(signum)
-        if len(self.signals) > 1 and self.interruptible:
-            self.interruptible = False
-            self.interrupted = True
-            raise KeyboardInterrupt(f"second signal {signal.Signals(signum).name}")
+        if len(self.signals) < 2 or not self.interruptible:
+            return
+        self.interrupted = True
+        if frame is not None and frame.f_globals is _MODULE:
+            self._arm()  # the window's own entry or exit: raised just outside it
+            return
+        self._interrupt()
 
-    @contextmanager
-    def window(self) -> Iterator[None]:
+    def _interrupt(self, cause: BaseException | None = None) -> NoReturn:
+        """Raise the interrupt (``second signal SIGINT``: the second signal's name)."""
+        err = KeyboardInterrupt(f"second signal {signal.Signals(self.signals[1]).name}")
+        self._raised = err
+        raise err from cause
+
+    def window(self) -> AbstractContextManager[None]:
         """Around a piece of computation (a step and the observers that compute,
         :func:`harness.loop.trajectory`; a draw of the floors,
         :attr:`harness.observers.base.RunContext.window`): stop before it when a signal
-        came (:class:`Terminated`); while it computes, a second signal stops at once.
-        Windows nest: leaving an inner one keeps the outer one open.
+        came (:class:`Terminated`, or the interrupt when one was raised); while it
+        computes, a second signal stops at once. Windows nest: leaving an inner one
+        keeps the outer one open.
         """
-        if self.signals:
-            raise Terminated(self.reason)
-        outer = self.interruptible
-        self.interruptible = True
-        try:
-            yield
-        finally:
-            self.interruptible = outer and not self.interrupted
+        return _Window(self)
 
     @property
     def reason(self) -> str:
         """``received SIGTERM`` (the first signal)."""
         return f"received {signal.Signals(self.signals[0]).name}" if self.signals else ""
 
+    def _unraisable(self, info: Any) -> None:
+        """``sys.unraisablehook`` while the run is on: the interrupt dropped by a ctypes
+        callback is raised again at the next call or return outside this module, and
+        not printed; anything else goes to the hook that was there before.
+        """
+        if info.exc_value is not None and info.exc_value is self._raised:
+            self._raised = None  # dropped: the next one raised is the live one
+            if self.interruptible:
+                self._arm()
+            return
+        if self._previous_hook is not None:
+            self._previous_hook(info)
+
+    def _arm(self) -> None:
+        """Raise the interrupt at the next call or return outside this module in the main
+        thread (:meth:`_again`), unless another profile function is set.
+        """
+        if sys.getprofile() is None and threading_is_main():
+            sys.setprofile(self._profile)
+
+    def _again(self, frame: FrameType, event: str, arg: Any) -> None:
+        """The profile function :meth:`_arm` sets: raise the interrupt (Python then
+        unsets it); off, without raising, once the window is left.
+        """
+        if frame.f_globals is _MODULE:  # the window's own exit, the handler and hooks
+            return
+        if not (self.interruptible and self.interrupted):
+            sys.setprofile(None)
+            return
+        self._interrupt()
+
+    def _disarm(self) -> None:
+        """Unset the profile function of :meth:`_again` when it is set."""
+        if sys.getprofile() is self._profile:
+            sys.setprofile(None)
+
     def install(self) -> None:
-        """Install the handler (main thread only; elsewhere signals stay as they are)."""
+        """Install the handler and the hook of dropped interrupts (main thread only;
+        elsewhere signals stay as they are).
+        """
         if threading_is_main():
             for sig in STOP_SIGNALS:
                 self._previous[sig] = signal.signal(sig, self)
+            self._previous_hook = sys.unraisablehook
+            sys.unraisablehook = self._unraisable
 
     def restore(self) -> None:
-        """Put the previous handlers back."""
+        """Put the previous handlers and hook back."""
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
+        if self._previous_hook is not None:
+            sys.unraisablehook = self._previous_hook
+            self._previous_hook = None
+        self._disarm()
+
+
+class _Window(AbstractContextManager[None]):
+    """The context manager of :meth:`StopRequest.window` (a class, not a generator, so
+    that its exit runs in this module, where the re-raising profile function stays
+    quiet, and always sets the request's state before anything can raise).
+    """
+
+    def __init__(self, stop: StopRequest) -> None:
+        self.stop = stop
+        self.outer = False
+
+    def __enter__(self) -> None:
+        stop = self.stop
+        if stop.interrupted:
+            stop._interrupt()
+        if stop.signals:
+            raise Terminated(stop.reason)
+        self.outer = stop.interruptible
+        stop.interruptible = True
+
+    def __exit__(self, kind: Any, err: BaseException | None, tb: Any) -> None:
+        stop = self.stop
+        stop.interruptible = self.outer and not stop.interrupted
+        if not stop.interruptible:
+            stop._disarm()
+        if stop.interrupted and (err is None or isinstance(err, Exception)):
+            stop._interrupt(err)  # swallowed, or turned into another error
+
+
+_MODULE = globals()
+"""This module's namespace: :meth:`StopRequest._again` never raises in its frames."""
 
 
 def check_writes_log(exp: Experiment) -> None:
