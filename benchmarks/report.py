@@ -310,7 +310,7 @@ def _calibration_of(group: list[Figure]) -> str:
 
 def summary(benchmark: str) -> str:
     """The first paragraph of the docstring of benchmark module ``benchmark``, read from
-    its source with :mod:`ast` (never imported: the name comes from a file); empty unless
+    its source with ``ast`` (never imported: the name comes from a file); empty unless
     the name is ``benchmarks.<identifier>`` of a module in this project's ``benchmarks/``.
     """
     import ast
