@@ -159,11 +159,13 @@ def png_problem(data: bytes) -> str:
     """What makes ``data`` other than a whole PNG file, in words (empty when nothing
     does): the signature, then chunks each of a length that fits in the file and a
     matching CRC-32, ``IHDR`` first (13 bytes, a width and height above 0), at least
-    one ``IDAT``, and ``IEND`` last, with nothing after it.
+    one ``IDAT``, and ``IEND`` last, with nothing after it; then the ``IDAT`` data must
+    inflate (:func:`pixels_problem`) to exactly the scanlines ``IHDR`` declares, so a
+    damaged stream under recomputed CRCs is found too.
     """
     if not data.startswith(PNG_SIGNATURE):
         return "no PNG signature"
-    at, first, has_data = len(PNG_SIGNATURE), True, False
+    at, first, header, stream = len(PNG_SIGNATURE), True, b"", []
     while True:
         if at + 12 > len(data):
             return f"cut short at byte {at} (no IEND chunk)"
@@ -180,15 +182,70 @@ def png_problem(data: bytes) -> str:
             width, height = struct.unpack(">II", body[:8])
             if width == 0 or height == 0:
                 return f"an image of {width} x {height} pixels"
-            first = False
-        has_data = has_data or kind == b"IDAT"
+            first, header = False, body
+        if kind == b"IDAT":
+            stream.append(body)
         at = end
         if kind == b"IEND":
             break
-    if not has_data:
+    if not stream:
         return "no IDAT chunk (no pixels)"
     if at != len(data):
         return f"{len(data) - at} bytes after its IEND chunk"
+    return pixels_problem(header, b"".join(stream))
+
+
+CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+"""Samples per pixel of each PNG colour type (grey, RGB, palette, grey + alpha, RGBA)."""
+
+ADAM7 = (
+    (0, 0, 8, 8),
+    (4, 0, 8, 8),
+    (0, 4, 4, 8),
+    (2, 0, 4, 4),
+    (0, 2, 2, 4),
+    (1, 0, 2, 2),
+    (0, 1, 1, 2),
+)
+"""The seven passes of an interlaced PNG: first column, first row, column step, row step."""
+
+
+def pixels_problem(header: bytes, stream: bytes) -> str:
+    """What is wrong with a PNG's concatenated ``IDAT`` data, in words (empty when
+    nothing is).
+
+    The data must be one zlib stream (its Adler-32 checked by ``zlib``) that inflates to
+    exactly ``sum over passes of rows * (1 + ceil(columns * bits per pixel / 8))`` bytes,
+    with ``bits per pixel = samples per pixel * bit depth`` from ``IHDR`` (one pass for a
+    plain image, the seven Adam7 passes for an interlaced one), and each scanline of a
+    plain image must start with a filter type 0 to 4. Inflation stops one byte past the
+    declared size, so a stream that claims more costs no more memory than the image.
+
+    Args:
+        header: The 13-byte ``IHDR`` body.
+        stream: The ``IDAT`` chunks' data, joined in order.
+    """
+    width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", header)
+    if colour not in CHANNELS or depth not in (1, 2, 4, 8, 16) or interlace not in (0, 1):
+        return f"IHDR declares colour type {colour}, bit depth {depth}, interlace {interlace}"
+    bits = CHANNELS[colour] * depth
+    passes = ADAM7 if interlace else ((0, 0, 1, 1),)
+    size = 0
+    for x0, y0, dx, dy in passes:
+        columns, rows = -(-(width - x0) // dx), -(-(height - y0) // dy)
+        if columns > 0 and rows > 0:
+            size += rows * (1 + -(-columns * bits // 8))
+    inflater = zlib.decompressobj()
+    try:
+        pixels = inflater.decompress(stream, size + 1)
+    except zlib.error as error:
+        return f"its pixel data does not inflate ({error}; damaged)"
+    if len(pixels) != size or not inflater.eof or inflater.unused_data:
+        return f"its pixel data is not the {size} bytes IHDR declares (damaged)"
+    if not interlace:
+        row = size // height
+        if any(pixels[i] > 4 for i in range(0, size, row)):
+            return "a scanline with an unknown filter type (damaged)"
     return ""
 
 

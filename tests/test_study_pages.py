@@ -268,6 +268,52 @@ def _long_chunk(data: bytes) -> bytes:
     return data[:start] + struct.pack(">I", 1 << 30) + data[start + 4 :]
 
 
+def _with_idat(data: bytes, pixels: bytes) -> bytes:
+    """``data`` with its ``IDAT`` chunks replaced by one holding ``pixels``, CRC made to
+    match, so only the pixel data itself is wrong."""
+    at, chunks = len(PNG_SIGNATURE), []
+    while at < len(data):
+        (length,) = struct.unpack(">I", data[at : at + 4])
+        chunks.append(data[at : at + 12 + length])
+        at += 12 + length
+    idat = b"IDAT" + pixels
+    new = struct.pack(">I", len(pixels)) + idat + struct.pack(">I", zlib.crc32(idat))
+    kept = [c for c in chunks if c[4:8] != b"IDAT"]
+    return PNG_SIGNATURE + b"".join(kept[:-1]) + new + kept[-1]
+
+
+def _idat(data: bytes) -> bytes:
+    at, parts = len(PNG_SIGNATURE), []
+    while at < len(data):
+        (length,) = struct.unpack(">I", data[at : at + 4])
+        if data[at + 4 : at + 8] == b"IDAT":
+            parts.append(data[at + 8 : at + 8 + length])
+        at += 12 + length
+    return b"".join(parts)
+
+
+def _stream_damaged_crc_recomputed(data: bytes) -> bytes:
+    stream = bytearray(_idat(data))
+    middle = len(stream) // 2
+    stream[middle : middle + 64] = bytes(b ^ 0x5A for b in stream[middle : middle + 64])
+    return _with_idat(data, bytes(stream))
+
+
+def _too_few_pixels(data: bytes) -> bytes:
+    pixels = zlib.decompress(_idat(data))
+    return _with_idat(data, zlib.compress(pixels[: len(pixels) // 2]))
+
+
+def _too_many_pixels(data: bytes) -> bytes:
+    pixels = zlib.decompress(_idat(data))
+    return _with_idat(data, zlib.compress(pixels + bytes(1 << 20)))
+
+
+def test_the_idat_rebuilder_keeps_a_good_png_good():
+    good = (DOCS / "sweeps" / "link.png").read_bytes()
+    assert png_problem(_with_idat(good, _idat(good))) == ""
+
+
 @pytest.mark.parametrize(
     "damage, why",
     [
@@ -278,9 +324,13 @@ def _long_chunk(data: bytes) -> bytes:
         (_trailing, "after its IEND"),
         (_no_ihdr, "not a 13-byte IHDR"),
         (_long_chunk, "runs past the end"),
+        (_stream_damaged_crc_recomputed, "pixel data"),
+        (_too_few_pixels, "pixel data is not the"),
+        (_too_many_pixels, "pixel data is not the"),
     ],
     ids=["cut-at-100-bytes", "signature-only", "no-iend", "flipped-byte", "trailing-bytes",
-         "no-ihdr", "chunk-longer-than-file"],
+         "no-ihdr", "chunk-longer-than-file", "stream-damaged-crc-recomputed",
+         "too-few-pixels", "too-many-pixels"],
 )  # fmt: skip
 def test_a_png_cut_short_or_damaged_is_refused_and_the_old_figure_kept(
     tmp_path, capsys, damage, why
