@@ -91,7 +91,7 @@ class Estimator(Protocol):
         uses_kde: Whether it reads the plant's measurement (the loop measures only then).
 
     Optional members: ``resolution`` (:func:`resolution`), ``check``
-    (:func:`check_parts`).
+    (:func:`check_parts`), ``publishes`` (:func:`publishes`).
     """
 
     uses_kde: bool
@@ -196,6 +196,14 @@ def kernel(plant: Plant) -> tuple[float, bool] | None:
     """
     kde = getattr(plant, "kde", None)
     return None if kde is None else (float(kde.bandwidth), bool(kde.mirror))
+
+
+def publishes(estimator: Estimator) -> tuple[str, ...]:
+    """The metric names ``estimator`` puts in every estimate's ``Estimate.metrics`` (its
+    optional ``publishes``: the decentralised loop's network metrics); none when it
+    does not say, so a guard may require them only of an estimator that publishes them.
+    """
+    return tuple(str(name) for name in getattr(estimator, "publishes", None) or ())
 
 
 def resolution(part: object) -> Any:

@@ -122,6 +122,31 @@ def test_the_guard_requires_only_metrics_an_observer_before_it_gives(refusal):
         assert refusal([*TINY, fine]) is None, fine
 
 
+NOT_GIVEN_BY_THIS_RUN = [
+    (["observers.guard.required=[consensus_l2]"], "consensus_l2"),
+    (["observers.guard.required=[mean_degree,t]"], "mean_degree"),
+    (["plant=meanfield", "observers.guard.required=[swarm_l2]"], "swarm_l2"),
+    (["control=psg", "observers.guard.required=[limit_swarm_l2]"], "limit_swarm_l2"),
+]
+"""Metrics some runs give and these do not: the network metrics without the decentralised
+estimator, the robots' metrics without robots, the limit's without a law's mean field."""
+
+
+@pytest.mark.parametrize(
+    "overrides,metric", NOT_GIVEN_BY_THIS_RUN, ids=[m for _, m in NOT_GIVEN_BY_THIS_RUN]
+)
+def test_the_guard_requires_only_metrics_this_run_gives(refusal, overrides, metric):
+    line = refusal([*TINY, *overrides])
+    assert line is not None and line.startswith("invalid config: observers.guard.required="), line
+    assert f"none gives {metric}" in line, line
+
+
+def test_the_guard_may_require_network_metrics_of_the_decentralised_estimator(refusal):
+    for fine in ("[consensus_l2]", "[mean_degree,central_gap_l2]"):
+        overrides = [*TINY, "estimator=distributed", f"observers.guard.required={fine}"]
+        assert refusal(overrides) is None, fine
+
+
 UNCADENCED = [o for o in TINY if not o.startswith("log.positions_every")]
 """TINY without its cadence of the swarm metrics (every step)."""
 

@@ -45,6 +45,7 @@ from harness.observers.floor_cache import FloorCache
 from harness.observers.swarm_metrics import TargetMeasure, swarm_w2, w2_method
 from harness.parameters import integer, require
 from harness.plants.limit import Limit
+from harness.protocols import Plant
 from harness.records import StepRecord
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
@@ -105,10 +106,12 @@ class SwarmTruth:
             :class:`harness.plants.limit.Limit`): without one (a law without a
             mean-field form) the two terms against the limit, ``limit_swarm_l2`` and
             ``limit_target_l2``, are None.
+        plant: The run's plant (run-time argument): one without robots (the mean
+            field) gives only ``phat_smoothed_target_l2``, so the builder refuses a guard
+            that requires a metric of the robots' positions of it.
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
-    gives = SWARM_KEYS
 
     def __init__(
         self,
@@ -124,8 +127,10 @@ class SwarmTruth:
         seed: int = 0,
         floor_cache: str | None = None,
         limit: Limit | None = None,
+        plant: Plant | None = None,
     ) -> None:
         self.path = TargetPath(target)
+        self.has_robots = plant is None or plant.has_robots
         self.grid, self.target = grid, self.path.floor_target()
         self.has_limit = limit is not None
         self.every = integer("every", every, 1)
@@ -153,6 +158,17 @@ class SwarmTruth:
         # built: a sweep builds its jobs in the launcher's worker and forks each job from
         # it, so the worker loads them once instead of every job
         import ot  # noqa: F401
+
+    @property
+    def gives(self) -> tuple[str, ...]:
+        """The swarm metrics this observer adds (:func:`harness.observers.base.gives`):
+        all of :data:`SWARM_KEYS` with robots, less the two against the limit without
+        one; only ``phat_smoothed_target_l2`` without robots.
+        """
+        if not self.has_robots:
+            return ("phat_smoothed_target_l2",)
+        against_limit = ("limit_swarm_l2", "limit_target_l2")
+        return tuple(k for k in SWARM_KEYS if self.has_limit or k not in against_limit)
 
     @property
     def at_cadence(self) -> dict[str, str]:

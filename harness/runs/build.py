@@ -565,7 +565,7 @@ def build(cfg: DictConfig) -> Experiment:
     identity = RunIdentity(data, int(cfg.seed), choices(cfg))
     watching = observers(
         cfg, data, grid=grid, target=target, control=control, plant=plant, limit=limit,
-        steps=steps, identity=identity,
+        estimator=estimator, steps=steps, identity=identity,
     )  # fmt: skip
     keys = {
         f"observers.{name}.{param}": key

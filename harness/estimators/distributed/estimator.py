@@ -18,7 +18,7 @@ from harness.estimators.distributed.consensus import DynamicAverageConsensus, me
 from harness.estimators.distributed.design import Design
 from harness.estimators.distributed.filters import RobotFilters
 from harness.estimators.distributed.graph import algebraic_connectivity, communication_graph
-from harness.estimators.distributed.metrics import FIELD_NAMES, network_figures
+from harness.estimators.distributed.metrics import FIELD_NAMES, NETWORK_KEYS, network_figures
 from harness.estimators.distributed.mixing import Mixer, consensus_weights
 from harness.estimators.filters.common import FilterSettings, MeasurementModel
 from harness.estimators.filters.engines import LocalEngine
@@ -253,6 +253,7 @@ class DistributedEstimator:
     """
 
     uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
+    publishes = NETWORK_KEYS  # every estimate carries them (network_figures)
 
     def __init__(
         self,
