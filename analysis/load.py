@@ -22,6 +22,7 @@ and ``component`` for two-component fields), :meth:`RunLog.metrics_xarray` (dim 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import warnings
@@ -451,6 +452,10 @@ def load_run(path: str | Path, topics: set[str] | None = None, poses: bool = Tru
     )
 
 
+class ChunkError(ValueError):
+    """A chunk whose compressed data does not decompress to the size its header declares."""
+
+
 def _records(reader: StreamReader, limits: Limits) -> Iterator[McapRecord]:
     """The records of ``reader`` (which emits chunks whole) in order, each chunk's records
     in place of the chunk: decompressed (uncompressed CRC checked) only when
@@ -465,7 +470,27 @@ def _records(reader: StreamReader, limits: Limits) -> Iterator[McapRecord]:
             told = zstandard.frame_content_size(record.data)  # ZstdError: damaged
             content = told if told >= 0 else None  # -1: the frame does not say
         if limits.unpack(record.uncompressed_size, content):
+            if record.compression == "lz4":
+                record = _inflated_lz4(record)
             yield from breakup_chunk(record, validate_crc=True)
+
+
+def _inflated_lz4(chunk: Chunk) -> Chunk:
+    """``chunk`` with its LZ4 frame decompressed, never past one byte beyond the size its
+    header declares (the LZ4 frame need not state its own size, so that is the only
+    bound; ``mcap`` itself would decompress the whole frame first).
+
+    Raises:
+        ChunkError: when the frame holds more or fewer bytes than declared, or is cut.
+    """
+    import lz4.frame  # only for logs written with LZ4 (the harness writes zstd)
+
+    declared = int(chunk.uncompressed_size)
+    inflater = lz4.frame.LZ4FrameDecompressor()
+    data = inflater.decompress(chunk.data, max_length=declared + 1)
+    if len(data) != declared or not inflater.eof:
+        raise ChunkError(f"an LZ4 chunk does not decompress to the {declared} bytes it declares")
+    return dataclasses.replace(chunk, compression="", data=data)
 
 
 def _metric_arrays(rows: list[dict[str, float]]) -> dict[str, np.ndarray]:
