@@ -22,7 +22,7 @@ import sys
 
 
 def stop_before_run(signum: int, frame: object) -> None:
-    """SIGTERM or SIGHUP before the run installs its own handlers (while the config is
+    """SIGINT, SIGTERM or SIGHUP before the run installs its own handlers (while the config is
     composed and built) stop the program as Ctrl-C does: one line, exit status 130,
     nothing written.
     """
@@ -37,15 +37,26 @@ def stop_while_loading(signum: int, frame: object) -> None:
     os._exit(130)
 
 
-IGNORED = {
-    s
-    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-    if signal.getsignal(s) is signal.SIG_IGN
-}
+STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP}
+"""The signals that stop the program (one line, exit status 130)."""
+
+
+def settled() -> None:
+    """Ignore the stop signals from here on: the outcome is decided and its status chosen.
+
+    The interpreter's shutdown puts the default handlers back for the signals that have
+    Python handlers, so a signal arriving then would end the program by the signal
+    (128 + its number) instead of with the status chosen; an ignored one stays ignored.
+    """
+    for sig in STOP_SIGNALS - IGNORED:
+        signal.signal(sig, signal.SIG_IGN)
+
+
+IGNORED = {s for s in STOP_SIGNALS if signal.getsignal(s) is signal.SIG_IGN}
 """Signals ignored when the program started (SIGINT in a background job): left so."""
 
 if __name__ == "__main__":
-    for _sig in {signal.SIGINT, signal.SIGTERM, signal.SIGHUP} - IGNORED:
+    for _sig in STOP_SIGNALS - IGNORED:
         signal.signal(_sig, stop_while_loading)
 from pathlib import Path
 
@@ -80,6 +91,7 @@ def main(cfg: DictConfig) -> None:
         print(err, file=sys.stderr)
         sys.exit(1)
     except Terminated as err:  # SIGINT, SIGTERM or SIGHUP between steps
+        settled()
         print(f"interrupted: {err}; log (aborted): {out / 'run.mcap'}", file=sys.stderr)
         sys.exit(130)
     m = result.last_metrics
@@ -136,9 +148,7 @@ if __name__ == "__main__":
     # not compose is one line and exit status 2, like every other config error; set
     # whatever the environment says, so the output never depends on it.
     os.environ["HYDRA_FULL_ERROR"] = "1"
-    if signal.SIGINT not in IGNORED:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-    for sig in {signal.SIGTERM, signal.SIGHUP} - IGNORED:
+    for sig in STOP_SIGNALS - IGNORED:
         signal.signal(sig, stop_before_run)
     # A sweep interrupted (SIGINT, SIGTERM, SIGHUP) or whose launcher failed still
     # writes its status table (harness.runs.app.finish_sweep) and exits non-zero.
@@ -149,8 +159,9 @@ if __name__ == "__main__":
         print(config_error(err, sys.argv[1:]), file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt as err:
+        settled()
         finish_sweep(str(err) or "KeyboardInterrupt")
-        print(f"interrupted: {err}".strip(), file=sys.stderr)
+        print(f"interrupted: {err or 'received SIGINT'}", file=sys.stderr)
         sys.exit(130)
     except Exception as err:  # the launcher failed (a worker process lost), or the parser
         status = finish_sweep(f"{type(err).__name__}: {err}")
@@ -163,3 +174,5 @@ if __name__ == "__main__":
             sys.exit(2)
         print(f"failed: {type(err).__name__}: {first}", file=sys.stderr)
         sys.exit(1)
+    finally:
+        settled()

@@ -168,6 +168,31 @@ def test_sigint_while_the_floors_compute_exits_130_within_seconds(tmp_path):
     assert "at step 0" in aborted_log(out)
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP, signal.SIGINT],
+                         ids=["SIGTERM", "SIGHUP", "SIGINT"])  # fmt: skip
+def test_signals_repeated_until_the_program_ends_still_give_exit_status_130(tmp_path, sig):
+    """The first signal stops the run in its floors; the same signal every 20 ms after it,
+    through the log's finalisation and the interpreter's shutdown, changes nothing: the
+    program exits with status 130 (not killed by the signal) and the log is ``aborted``.
+    """
+    out = tmp_path / "x"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "experiments.closed_loop", f"hydra.run.dir={out}",
+         "log.progress=off", *LONG_FLOORS, "log.floor_cache="],
+        cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    _wait_for(lambda: (out / "run.mcap").exists())
+    time.sleep(1.0)  # in the floors (30 s of them)
+    deadline = time.monotonic() + 30
+    while proc.poll() is None and time.monotonic() < deadline:
+        proc.send_signal(sig)
+        time.sleep(0.02)
+    _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130, (proc.returncode, err)
+    assert err.startswith("interrupted: ") and len(err.strip().splitlines()) == 1, err
+    assert "at step 0" in aborted_log(out)
+
+
 def test_sigterm_to_a_sweep_while_its_floors_compute_aborts_every_job(tmp_path):
     proc = subprocess.Popen(
         [
