@@ -26,19 +26,26 @@ import matplotlib.pyplot as plt
 
 from harness import api
 
+
+def refuse(why: str) -> None:
+    """Stop before the simulations: one line, exit status 2 (as a config the harness refuses)."""
+    print(f"error: EXPLORE_FIGURE={figure}: {why}", file=sys.stderr)
+    sys.exit(2)
+
+
 # where the figure goes, decided before the simulations: a missing folder is created, and
 # one that cannot be stops here, not after them
 figure = Path(os.environ.get("EXPLORE_FIGURE") or Path(tempfile.mkdtemp()) / "explore.png")
 formats = plt.gcf().canvas.get_supported_filetypes()
 plt.close("all")
 if figure.suffix.lstrip(".").lower() not in formats:
-    sys.exit(f"error: EXPLORE_FIGURE={figure}: a file name ending in one of .{', .'.join(formats)}")
+    refuse(f"a file name ending in one of .{', .'.join(formats)}")
 if figure.exists() and not figure.is_file():
-    sys.exit(f"error: EXPLORE_FIGURE={figure}: not a regular file")
+    refuse("not a regular file")
 try:
     figure.parent.mkdir(parents=True, exist_ok=True)
 except OSError as err:
-    sys.exit(f"error: EXPLORE_FIGURE={figure}: no folder for it ({err.strerror or err})")
+    refuse(f"no folder for it ({err.strerror or err})")
 
 SHORT = ["sim.t_final=20", "grid.n=20"]  # the paper's defaults otherwise (conf/closed_loop.yaml)
 cfg = api.compose(SHORT)

@@ -165,13 +165,16 @@ def test_the_example_stops_before_simulating_when_its_figure_has_no_folder(
     monkeypatch.setattr(api, "simulate", no_simulation)
     with pytest.raises(SystemExit) as stop:
         runpy.run_path(str(EXAMPLE), run_name="__main__")
-    message = str(stop.value.code)
+    message = capsys.readouterr().err
+    assert stop.value.code == 2
     assert message.startswith("error: EXPLORE_FIGURE=") and "a-file" in message
-    assert "\n" not in message
+    assert len(message.strip().splitlines()) == 1, message
 
 
 @pytest.mark.parametrize("kind", ["directory", "fifo", "no suffix"])
-def test_the_example_refuses_a_figure_it_could_not_write_where_it_says(tmp_path, monkeypatch, kind):
+def test_the_example_refuses_a_figure_it_could_not_write_where_it_says(
+    tmp_path, monkeypatch, capsys, kind
+):
     """A directory, a FIFO or a name matplotlib would extend (``x`` -> ``x.png``): refused
     before the simulations, so the printed path is always the written one."""
     target = tmp_path / "figure"
@@ -188,8 +191,10 @@ def test_the_example_refuses_a_figure_it_could_not_write_where_it_says(tmp_path,
     monkeypatch.setattr(api, "simulate", no_simulation)
     with pytest.raises(SystemExit) as stop:
         runpy.run_path(str(EXAMPLE), run_name="__main__")
-    message = str(stop.value.code)
-    assert message.startswith(f"error: EXPLORE_FIGURE={target}:") and "\n" not in message
+    message = capsys.readouterr().err
+    assert stop.value.code == 2
+    assert message.startswith(f"error: EXPLORE_FIGURE={target}:"), message
+    assert len(message.strip().splitlines()) == 1, message
 
 
 def readme_example() -> str:
