@@ -27,6 +27,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "harness.files",
         "harness.fokker_planck",
         "harness.exact_solutions",
+        "harness.domains",
     ),
     ("harness.targets",),
     ("harness.records",),

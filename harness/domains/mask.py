@@ -1,0 +1,96 @@
+"""``domain=mask``: free space read from a PNG image (white free, dark blocked)."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from harness.domains.base import Domain
+from harness.files import UnreadableFile, read_bytes
+from harness.parameters import ParameterError, number, require
+
+SHIPPED = Path(__file__).resolve().parent / "data"
+"""The masks the package ships (``shipped: NAME`` reads ``SHIPPED / NAME.png``)."""
+
+MAX_BYTES = 16 << 20
+"""Largest mask file read (bytes)."""
+
+MAX_PIXELS = 4096 * 4096
+"""Largest mask image (pixels), checked before its pixels are decoded."""
+
+
+class Mask(Domain):
+    """Free space from an image stretched over the square: a pixel is free when its
+    grey level (0 to 1, the image converted to luminance) is at least ``threshold``.
+    The image's top row is the top of the square (``y = L``); a point is looked up in
+    the pixel that contains it.
+
+    Args:
+        path: A PNG file of the user's (``~`` expanded; relative to the working
+            directory), or None to use ``shipped``.
+        shipped: The name of a mask the package ships (``harness/domains/data``), used
+            when ``path`` is None.
+        threshold: Grey level in ``(0, 1]`` from which a pixel is free.
+        resolution: Squares per side of the robots' raster (``>= 16``).
+
+    Raises:
+        ParameterError: naming ``path`` or ``shipped`` for a file that is missing, not a
+            regular file, too large or not an image; ``threshold`` outside ``(0, 1]``.
+    """
+
+    name = "mask"
+
+    def __init__(
+        self,
+        path: str | None = None,
+        shipped: str | None = "warehouse",
+        threshold: float = 0.5,
+        resolution: int = 1024,
+    ) -> None:
+        super().__init__(resolution)
+        self.threshold = number("threshold", threshold, 0.0, strict=True)
+        require(self.threshold <= 1.0, "threshold", threshold, "a grey level in (0, 1]")
+        if path:
+            key, file = "path", Path(str(path)).expanduser()
+        else:
+            names = sorted(p.stem for p in SHIPPED.glob("*.png"))
+            require(shipped in names, "shipped", shipped, f"one of {names}, or a path")
+            key, file = "shipped", SHIPPED / f"{shipped}.png"
+        self.source = str(file)
+        self.free = _read_mask(key, file, self.threshold)
+
+    def blocked(self, x: np.ndarray, y: np.ndarray, length: float) -> np.ndarray:
+        """In a pixel darker than the threshold."""
+        rows, cols = self.free.shape
+        col = np.clip((np.asarray(x) / length * cols).astype(int), 0, cols - 1)
+        row = np.clip(((1.0 - np.asarray(y) / length) * rows).astype(int), 0, rows - 1)
+        return ~self.free[row, col]
+
+
+def _read_mask(key: str, file: Path, threshold: float) -> np.ndarray:
+    """The free pixels of the image ``file`` (row 0 at the top), or a
+    :class:`ParameterError` naming ``key``.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        data = read_bytes(file, MAX_BYTES)
+    except UnreadableFile as err:
+        raise ParameterError(key, str(file), f"a readable PNG file ({err})") from None
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            if image.format != "PNG":
+                raise ParameterError(key, str(file), f"a PNG image (it is {image.format})")
+            width, height = image.size
+            if width * height > MAX_PIXELS or min(width, height) < 2:
+                raise ParameterError(
+                    key, str(file), f"an image of 2 to {MAX_PIXELS} pixels ({width} x {height})"
+                )
+            grey = np.asarray(image.convert("L"), dtype=float) / 255.0
+    except ParameterError:
+        raise
+    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as err:
+        raise ParameterError(key, str(file), f"a PNG image ({type(err).__name__})") from None
+    return grey >= threshold

@@ -1,0 +1,180 @@
+"""Free space resolved on the grid and the robots' raster (harness/domains), against
+areas known in closed form, brute-force flood fills and images drawn here.
+"""
+
+import os
+from collections import deque
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from harness.domains.base import components
+from harness.domains.mask import Mask
+from harness.domains.obstacles import Obstacles
+from harness.domains.rooms import Rooms
+from harness.domains.square import Square
+from harness.grid import Grid
+from harness.parameters import ParameterError
+
+
+def flood_labels(cells, face_x, face_y):
+    """Component labels by breadth-first search, numbered by first cell in C order."""
+    ny, nx = cells.shape
+    labels = -np.ones((ny, nx), dtype=int)
+    count = 0
+    for j in range(ny):
+        for i in range(nx):
+            if not cells[j, i] or labels[j, i] >= 0:
+                continue
+            labels[j, i] = count
+            queue = deque([(j, i)])
+            while queue:
+                b, a = queue.popleft()
+                steps = []
+                if a + 1 < nx and face_x[b, a]:
+                    steps.append((b, a + 1))
+                if a > 0 and face_x[b, a - 1]:
+                    steps.append((b, a - 1))
+                if b + 1 < ny and face_y[b, a]:
+                    steps.append((b + 1, a))
+                if b > 0 and face_y[b - 1, a]:
+                    steps.append((b - 1, a))
+                for s in steps:
+                    if labels[s] < 0:
+                        labels[s] = count
+                        queue.append(s)
+            count += 1
+    return labels
+
+
+def test_the_square_is_free_everywhere():
+    grid = Grid.square(12)
+    free = Square().resolve(grid)
+    assert free.everywhere and free.n_components == 1
+    assert free.free_area == pytest.approx(1.0)
+    assert not Square(resolution=64).raster(1.0).any()
+
+
+@pytest.mark.parametrize("n", [30, 64])
+def test_a_disc_removes_its_area_to_within_its_boundary_cells(n):
+    r = 0.2
+    grid = Grid.square(n)
+    free = Obstacles(discs=[{"center": [0.5, 0.5], "radius": r}]).resolve(grid)
+    exact = 1.0 - np.pi * r**2
+    boundary = 2 * np.pi * r * grid.dx  # the cells the circle crosses, at most
+    assert abs(free.free_area - exact) <= boundary
+    assert free.n_components == 1
+
+
+def test_points_in_discs_and_polygons_are_blocked_exactly():
+    dom = Obstacles(
+        discs=[{"center": [0.3, 0.3], "radius": 0.1}],
+        polygons=[[[0.6, 0.6], [0.9, 0.6], [0.9, 0.9], [0.6, 0.9]]],
+    )
+    x = np.array([0.3, 0.3 + 0.0999, 0.3 + 0.1001, 0.75, 0.95, 0.5])
+    y = np.array([0.3, 0.3, 0.3, 0.75, 0.75, 0.5])
+    assert dom.blocked(x, y, 1.0).tolist() == [True, True, False, True, False, False]
+
+
+def test_the_rooms_are_one_component_through_their_door_and_two_without():
+    grid = Grid.square(30)
+    assert Rooms().resolve(grid).n_components == 1
+    shut = Rooms(door=(0.5, 0.5 + 1e-3)).resolve(grid)  # thinner than a cell: closed
+    assert shut.n_components == 2
+
+
+def test_no_open_face_crosses_a_wall_thinner_than_a_cell():
+    grid = Grid.square(20)  # cells of 0.05; a wall of 0.015 inside one column of cells
+    wall = [[0.505, 0.0], [0.52, 0.0], [0.52, 1.0], [0.505, 1.0]]  # left of the centre 0.525
+    free = Obstacles(polygons=[wall]).resolve(grid)
+    assert free.cells.all()  # the wall covers less than half of any cell
+    assert free.n_components == 2  # but closes every face it crosses: no leak
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_components_match_a_flood_fill(seed):
+    rng = np.random.default_rng(seed)
+    cells = rng.random((9, 11)) < 0.6
+    face_x = cells[:, :-1] & cells[:, 1:] & (rng.random((9, 10)) < 0.8)
+    face_y = cells[:-1, :] & cells[1:, :] & (rng.random((8, 11)) < 0.8)
+    assert (components(cells, face_x, face_y) == flood_labels(cells, face_x, face_y)).all()
+
+
+def test_restrict_puts_unit_mass_on_free_cells_only():
+    grid = Grid.square(30)
+    free = Rooms().resolve(grid)
+    p = free.restrict(np.ones(grid.shape))
+    assert grid.integrate(p) == pytest.approx(1.0, abs=1e-14)
+    assert (p[~free.cells] == 0).all() and (p[free.cells] > 0).all()
+    with pytest.raises(ValueError, match="no mass"):
+        free.restrict(np.where(free.cells, 0.0, 1.0))
+
+
+def test_the_raster_agrees_with_the_geometry_at_square_centres():
+    dom = Rooms(resolution=64)
+    raster = dom.raster(2.0)
+    centres = (np.arange(64) + 0.5) * (2.0 / 64)
+    x, y = np.meshgrid(centres, centres, indexing="xy")
+    assert (raster.astype(bool) == dom.blocked(x, y, 2.0)).all()
+    assert raster[:, 32].any() and not raster[:, 0].any()
+
+
+def _png(path, pixels):
+    Image.fromarray(np.asarray(pixels, dtype=np.uint8), mode="L").save(path)
+    return str(path)
+
+
+def test_a_mask_s_top_row_is_the_top_of_the_square(tmp_path):
+    image = np.full((8, 8), 255)
+    image[:4] = 0  # the top half dark
+    dom = Mask(path=_png(tmp_path / "m.png", image))
+    assert dom.blocked(np.array([0.5, 0.5]), np.array([0.9, 0.1]), 1.0).tolist() == [True, False]
+    free = dom.resolve(Grid.square(16))
+    assert free.cells[:8].all() and not free.cells[8:].any()  # grid row 0 at the bottom
+
+
+def test_the_shipped_mask_loads_and_its_aisles_connect():
+    free = Mask().resolve(Grid.square(64))
+    assert 0.6 < free.free_area < 0.95 and free.n_components == 1
+
+
+@pytest.mark.parametrize("kind", ["missing", "text", "fifo", "jpeg", "huge", "directory"])
+def test_a_mask_that_is_not_a_readable_png_is_refused_naming_path(tmp_path, kind):
+    path = tmp_path / "mask.png"
+    if kind == "text":
+        path.write_text("not an image")
+    elif kind == "fifo":
+        os.mkfifo(path)
+    elif kind == "jpeg":
+        Image.fromarray(np.zeros((8, 8), dtype=np.uint8), mode="L").save(path, format="JPEG")
+    elif kind == "huge":
+        Image.new("1", (5000, 5000)).save(path)  # small file, 25 M pixels
+    elif kind == "directory":
+        path.mkdir()
+    with pytest.raises(ParameterError) as err:
+        Mask(path=str(path))
+    assert err.value.name == "path" and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"discs": [{"center": [0.5, 0.5], "radius": -0.1}]}, "discs[0].radius"),
+        ({"discs": [{"center": [0.5], "radius": 0.1}]}, "discs[0].center"),
+        ({"discs": [{"radius": 0.1}]}, "discs[0]"),
+        ({"polygons": [[[0, 0], [1, 1]]]}, "polygons[0]"),
+        ({"polygons": [[[0, 0], [1, "a"], [0, 1]]]}, "polygons[0][1]"),
+        ({"resolution": 8}, "resolution"),
+    ],
+)
+def test_bad_obstacles_are_refused_naming_the_parameter(kwargs, name):
+    with pytest.raises(ParameterError) as err:
+        Obstacles(**kwargs)
+    assert err.value.name == name
+
+
+def test_obstacles_covering_the_square_are_refused():
+    dom = Obstacles(discs=[{"center": [0.5, 0.5], "radius": 2.0}])
+    with pytest.raises(ParameterError, match="free space"):
+        dom.resolve(Grid.square(10))
