@@ -54,6 +54,7 @@ from harness.compiled.fokker_planck import (
     neumann_series,
     red_black,
 )
+from harness.domains.base import FreeSpace
 from harness.grid import Grid
 from harness.velocity import VelocityField
 
@@ -122,7 +123,9 @@ def face_coefficients(u: np.ndarray, diffusivity: float, h: float) -> tuple[np.n
     return a_r + u, a_r
 
 
-def rate(grid: Grid, p: np.ndarray, v: VelocityField, sigma: float) -> np.ndarray:
+def rate(
+    grid: Grid, p: np.ndarray, v: VelocityField, sigma: float, free: FreeSpace | None = None
+) -> np.ndarray:
     """Reference right-hand side ``dp/dt = -div(v p) + sigma Laplacian(p)`` (eq.
     ``FP equation``) as face fluxes, plain numpy, for testing the fast path.
 
@@ -131,6 +134,8 @@ def rate(grid: Grid, p: np.ndarray, v: VelocityField, sigma: float) -> np.ndarra
         p: Density, shape ``(ny, nx)`` (1 / length^2).
         v: Velocity field; only the face values are used.
         sigma: Noise intensity ``sigma >= 0`` (length^2 / time).
+        free: Free space on the grid; no flux crosses its closed faces (None: every
+            interior face is open).
 
     Returns:
         ``dp/dt``, shape ``(ny, nx)``, in 1 / (length^2 time).
@@ -138,10 +143,14 @@ def rate(grid: Grid, p: np.ndarray, v: VelocityField, sigma: float) -> np.ndarra
     out = np.zeros_like(p, dtype=float)
     a_l, a_r = face_coefficients(v.face_x, sigma, grid.dx)
     flux_x = a_l * p[:, :-1] - a_r * p[:, 1:]
+    if free is not None:
+        flux_x = np.where(free.face_x, flux_x, 0.0)
     out[:, :-1] -= flux_x / grid.dx
     out[:, 1:] += flux_x / grid.dx
     a_l, a_r = face_coefficients(v.face_y, sigma, grid.dy)
     flux_y = a_l * p[:-1, :] - a_r * p[1:, :]
+    if free is not None:
+        flux_y = np.where(free.face_y, flux_y, 0.0)
     out[:-1, :] -= flux_y / grid.dy
     out[1:, :] += flux_y / grid.dy
     return out
@@ -197,17 +206,31 @@ class FokkerPlanck:
             Brownian term is ``sqrt(2 sigma) dB``.
         mass_tolerance: Largest relative change of ``int p`` allowed in one step
             before :meth:`step` raises :class:`NumericalError`.
+        free: Free space on the grid (:class:`harness.domains.base.FreeSpace`): no flux
+            through its closed faces, so a blocked cell exchanges nothing and the mass
+            on each component of free space is conserved. None: the whole rectangle.
     """
 
     grid: Grid
     sigma: float
     mass_tolerance: float = 1e-9
+    free: FreeSpace | None = None
     _pattern: _Pattern = field(init=False, repr=False)
     _template: sp.csr_matrix = field(init=False, repr=False)
+    _open: tuple[np.ndarray, np.ndarray] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not np.isfinite(self.sigma) or self.sigma < 0:
             raise ValueError(f"sigma must be finite and >= 0, got {self.sigma}")
+        if self.free is not None and self.free.grid != self.grid:
+            raise ValueError("free space resolved on another grid")
+        g = self.grid
+        if self.free is None:
+            self._open = (np.ones((g.ny, g.nx - 1), bool), np.ones((g.ny - 1, g.nx), bool))
+        else:
+            self._open = (self.free.face_x.copy(), self.free.face_y.copy())
+        for flags in self._open:
+            flags.flags.writeable = False
         self._pattern = _build_pattern(self.grid)
         pat, size = self._pattern, self.grid.size
         # every A(v) shares the pattern's index arrays, read-only so that no consumer
@@ -225,7 +248,8 @@ class FokkerPlanck:
         ay_l, ay_r = face_coefficients(v.face_y.ravel(), self.sigma, g.dy)
         a_l = np.concatenate([ax_l / g.dx, ay_l / g.dy])
         a_r = np.concatenate([ax_r / g.dx, ay_r / g.dy])
-        return a_l, a_r
+        open_faces = np.concatenate([f.ravel() for f in self._open])
+        return np.where(open_faces, a_l, 0.0), np.where(open_faces, a_r, 0.0)
 
     def matrix(self, v: VelocityField) -> sp.csr_matrix:
         """Sparse ``A(v)`` with ``dp/dt = A(v) p`` on flattened fields (eq. ``FP
@@ -240,7 +264,7 @@ class FokkerPlanck:
         face_x = np.ascontiguousarray(v.face_x, dtype=float)
         face_y = np.ascontiguousarray(v.face_y, dtype=float)
         a.data = assemble_operator(
-            face_x, face_y, float(self.sigma), float(g.dx), float(g.dy), pat.indptr
+            face_x, face_y, *self._open, float(self.sigma), float(g.dx), float(g.dy), pat.indptr
         )
         return a
 

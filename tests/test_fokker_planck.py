@@ -311,7 +311,7 @@ def test_parallel_assembly_does_not_depend_on_thread_count(rng):
     g = Grid.square(96)
     op = FokkerPlanck(g, 5e-5)
     v = random_velocity(g, rng, 0.01)
-    args = (v.face_x, v.face_y, 5e-5, g.dx, g.dy, op._pattern.indptr)
+    args = (v.face_x, v.face_y, *op._open, 5e-5, g.dx, g.dy, op._pattern.indptr)
     before = numba.get_num_threads()
     try:
         results = []

@@ -35,6 +35,8 @@ def _face_rate_pair(u: float, sigma: float, h: float) -> tuple[float, float]:  #
 def _assemble_operator(
     face_x: np.ndarray,
     face_y: np.ndarray,
+    open_x: np.ndarray,
+    open_y: np.ndarray,
     sigma: float,
     dx: float,
     dy: float,
@@ -43,7 +45,9 @@ def _assemble_operator(
     """CSR data of ``A(v)``, the finite-volume operator of eq. ``FP equation``
     (:meth:`harness.fokker_planck.FokkerPlanck.matrix`), straight from the face
     velocities: the face rates (one parallel pass over the faces), then the rows (one
-    parallel pass over the cells).
+    parallel pass over the cells). A closed face (``open_x`` or ``open_y`` False: an
+    obstacle's, :class:`harness.domains.base.FreeSpace`) has both rates 0, whatever its
+    velocity (which need not be finite there).
 
     Row ``i`` (cell ``(row, col)``) holds, in column order, ``i - n_x``, ``i - 1``,
     ``i``, ``i + 1``, ``i + n_x`` where they exist: the inflow rates ``a_L`` of the faces
@@ -60,10 +64,16 @@ def _assemble_operator(
     yr = np.empty((ny - 1, nx))
     for row in numba.prange(ny):
         for col in range(nx - 1):
-            xl[row, col], xr[row, col] = _face_rate_pair(face_x[row, col], sigma, dx)
+            if open_x[row, col]:
+                xl[row, col], xr[row, col] = _face_rate_pair(face_x[row, col], sigma, dx)
+            else:
+                xl[row, col], xr[row, col] = 0.0, 0.0
         if row < ny - 1:
             for col in range(nx):
-                yl[row, col], yr[row, col] = _face_rate_pair(face_y[row, col], sigma, dy)
+                if open_y[row, col]:
+                    yl[row, col], yr[row, col] = _face_rate_pair(face_y[row, col], sigma, dy)
+                else:
+                    yl[row, col], yr[row, col] = 0.0, 0.0
     out = np.empty(indptr[-1])
     for row in numba.prange(ny):
         for col in range(nx):
