@@ -206,6 +206,16 @@ def publishes(estimator: Estimator) -> tuple[str, ...]:
     return tuple(str(name) for name in getattr(estimator, "publishes", None) or ())
 
 
+def on_free_space(part: object) -> bool:
+    """Whether ``part`` honours a domain with obstacles (its optional ``free_space``):
+    it reads free space from the model or the target it is built with
+    (:class:`harness.domains.base.FreeSpace`) and never puts robots, mass or velocity
+    through an obstacle. A part that does not say runs only on the plain square, and
+    the builder refuses it on another domain.
+    """
+    return bool(getattr(part, "free_space", False))
+
+
 def resolution(part: object) -> Any:
     """A component's optional ``resolution``: for a plant the smallest length its
     measurement resolves (None: the grid's); for an estimator a function of the

@@ -178,3 +178,38 @@ def test_obstacles_covering_the_square_are_refused():
     dom = Obstacles(discs=[{"center": [0.5, 0.5], "radius": 2.0}])
     with pytest.raises(ParameterError, match="free space"):
         dom.resolve(Grid.square(10))
+
+
+def test_the_gradient_on_the_square_s_free_space_is_the_grid_s(rng):
+    grid = Grid.square(14)
+    f = rng.random(grid.shape)
+    assert np.array_equal(Square().resolve(grid).gradient(f), grid.gradient(f))
+
+
+def test_the_gradient_reflects_at_closed_faces_as_at_walls():
+    """A field that depends on x only, linear in each room: the gradient is exact inside
+    each room, and a cell next to the wall uses itself as its ghost neighbour."""
+    grid = Grid.square(20)
+    free = Rooms(door=(0.5, 0.5001)).resolve(grid)
+    f = grid.mesh[0].copy()
+    g = free.gradient(f)
+    left_edge = np.flatnonzero(free.cells[5])  # a row away from the door
+    cols = left_edge[(left_edge > 0) & (left_edge < 19)]
+    inside = [c for c in cols if free.face_x[5, c - 1] and free.face_x[5, c]]
+    np.testing.assert_allclose(g[0, 5, inside], 1.0)
+    beside = [c for c in cols if free.face_x[5, c - 1] != free.face_x[5, c]]
+    assert beside and np.allclose(g[0, 5, beside], 0.5)  # half, as at the rectangle's walls
+    assert (g[:, ~free.cells] == 0).all()
+
+
+def test_a_part_that_does_not_honour_obstacles_is_refused_on_them(refusal):
+    line = refusal(["domain=rooms", "grid.n=12", "agents.n=40"])
+    assert line is not None and line.startswith("invalid config: domain='rooms': square"), line
+    assert "runs on" in line
+
+
+def test_obstacles_that_cover_every_cell_are_refused_naming_domain(refusal):
+    line = refusal(["domain=obstacles", "grid.n=12", "~domain.polygons",
+                    "domain.discs=[{center:[0.5,0.5],radius:2.0}]"])  # fmt: skip
+    assert line is not None and line.startswith("invalid config: domain='obstacles': "), line
+    assert "free space" in line

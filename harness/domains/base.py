@@ -53,6 +53,8 @@ class FreeSpace:
             ``(j, i)`` and ``(j + 1, i)``.
         labels: ``(ny, nx)`` integers, the component of each free cell (0, 1, ...;
             -1 for a blocked cell), components numbered by their first cell in C order.
+        raster: ``(r, r)`` uint8, the robots' map of obstacles (:meth:`Domain.raster`:
+            1 blocked, row along y) on the grid's square.
     """
 
     grid: Grid
@@ -60,6 +62,7 @@ class FreeSpace:
     face_x: np.ndarray
     face_y: np.ndarray
     labels: np.ndarray
+    raster: np.ndarray
 
     @property
     def n_components(self) -> int:
@@ -75,6 +78,23 @@ class FreeSpace:
     def free_area(self) -> float:
         """Area of the free cells (length^2)."""
         return float(self.cells.sum()) * self.grid.cell_area
+
+    def gradient(self, f: np.ndarray) -> np.ndarray:
+        """Cell-centred gradient ``(2, ny, nx)`` of a scalar field on free space: central
+        differences ``(f_E - f_W) / (2 dx)`` where a neighbour behind a closed face (an
+        obstacle's, or the rectangle's wall) is the cell itself, the reflecting ghost
+        cell of :meth:`harness.grid.Grid.gradient` (which this equals on the plain
+        rectangle); 0 on blocked cells.
+        """
+        f = np.asarray(f, dtype=float)
+        g = self.grid
+        east, west, north, south = f.copy(), f.copy(), f.copy(), f.copy()
+        east[:, :-1] = np.where(self.face_x, f[:, 1:], f[:, :-1])
+        west[:, 1:] = np.where(self.face_x, f[:, :-1], f[:, 1:])
+        north[:-1, :] = np.where(self.face_y, f[1:, :], f[:-1, :])
+        south[1:, :] = np.where(self.face_y, f[:-1, :], f[1:, :])
+        out = np.stack([(east - west) / (2 * g.dx), (north - south) / (2 * g.dy)])
+        return np.where(self.cells, out, 0.0)
 
     def restrict(self, p: np.ndarray) -> np.ndarray:
         """``p`` set to 0 on blocked cells and scaled to integrate to 1 over the free ones.
@@ -175,7 +195,11 @@ class Domain(ABC):
                 "domain", self.name, "a domain with free space (its obstacles cover every cell)"
             )
         face_x, face_y = self.open_faces(grid, cells)
-        return FreeSpace(grid, cells, face_x, face_y, components(cells, face_x, face_y))
+        labels = components(cells, face_x, face_y)
+        raster = self.raster(_side(grid))
+        for array in (cells, face_x, face_y, labels, raster):
+            array.flags.writeable = False
+        return FreeSpace(grid, cells, face_x, face_y, labels, raster)
 
     # --- the robots ---------------------------------------------------------------
     def raster(self, length: float) -> np.ndarray:

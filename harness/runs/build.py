@@ -26,6 +26,7 @@ from hydra.errors import InstantiationException
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from harness.domains.base import Domain
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.loop import Experiment
@@ -51,8 +52,10 @@ from harness.runs.checks import (
     check_shared,
     check_unread,
     density_on_grid,
+    init_on_free_space,
     target_on_grid,
 )
+from harness.runs.domain import check_free_space, free_space
 from harness.runs.identity import RunIdentity, choices, chosen_observers, resolved
 from harness.runs.resources import check_memory
 from harness.targets.densities import Density, Target
@@ -74,6 +77,7 @@ OBSERVER_OPTIONS = (Path(__file__).parents[1] / "conf" / "observers").resolve()
 
 
 PROTOCOLS: dict[str, type] = {
+    "domain": Domain,
     "target": Density,
     "init": Density,
     "plant": Plant,
@@ -548,14 +552,19 @@ def build(cfg: DictConfig) -> Experiment:
     check_shared(cfg)
     grid = Grid.square(cfg.grid.n, cfg.grid.length)
     check_memory(cfg, grid)
-    target = target_on_grid(_on_path(cfg, component(cfg, "target", data), grid), grid)
+    free = free_space(cfg, data, grid, component)
+    target = target_on_grid(_on_path(cfg, component(cfg, "target", data), grid), grid, free)
     init = component(cfg, "init", data)
     density_on_grid("init", init, grid)
-    model = FokkerPlanck(grid, float(cfg.dynamics.sigma))
+    if free is not None:
+        init_on_free_space(init, grid, free)
+    model = FokkerPlanck(grid, float(cfg.dynamics.sigma), free=free)
     control = component(cfg, "control", data, target=target)
     _check_follows(target, control)
     plant = component(cfg, "plant", data, grid=grid, model=model, init=init)
     estimator = component(cfg, "estimator", data, grid=grid, model=model)
+    parts = {"plant": plant, "estimator": estimator, "control": control}
+    check_free_space(cfg, free, target, parts)
     _check_parts(plant, estimator, control)
     limit = _limit(plant, control, grid, model, init)
     check_built(cfg, grid, target, control, plant, estimator)

@@ -21,6 +21,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from harness.control.field import sampled_data_dt_bound
+from harness.domains.base import FreeSpace
 from harness.estimators.kde import KDE
 from harness.grid import Grid
 from harness.parameters import ParameterError, flag, integer, number
@@ -46,7 +47,7 @@ SHARED_BLOCKS = ("grid", "agents", "dynamics", "sim", "kde", "log")
 """Config blocks every run needs."""
 
 
-GROUPS = ("plant", "estimator", "control", "target", "init", "observers")
+GROUPS = ("plant", "estimator", "control", "target", "init", "observers", "domain")
 """Config groups whose node is one component (``_target_`` and its parameters), or a
 dict of them (``observers``)."""
 
@@ -305,13 +306,26 @@ def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
     return p
 
 
-def target_on_grid(density: Density, grid: Grid) -> Target:
-    """The target on the grid; refused unless strictly positive there."""
-    density_on_grid("target", density, grid)
+def target_on_grid(density: Density, grid: Grid, free: FreeSpace | None = None) -> Target:
+    """The target on the grid, restricted to ``free`` when given; refused unless
+    strictly positive there (on free space: with mass there).
+    """
+    p = density_on_grid("target", density, grid)
+    if free is not None and not grid.integrate(np.where(free.cells, p, 0.0)) > 0:
+        raise ConfigError("target", density, "a target with mass in free space (the domain's)")
     try:
-        return Target.from_density(grid, density)
+        return Target.from_density(grid, density, free)
     except ValueError as err:
         raise ConfigError("target", density, str(err)) from None
+
+
+def init_on_free_space(density: Density, grid: Grid, free: FreeSpace) -> None:
+    """Refuse an initial density with no mass on the free cells of ``free``."""
+    p = density_on_grid("init", density, grid)
+    if not grid.integrate(np.where(free.cells, p, 0.0)) > 0:
+        raise ConfigError(
+            "init", density, "an initial density with mass in free space (it is all in obstacles)"
+        )
 
 
 def resolution(plant: Any, estimator: Any) -> float | None:

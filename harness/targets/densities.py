@@ -46,6 +46,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 from scipy.special import ndtr
 
+from harness.domains.base import FreeSpace
 from harness.grid import Grid
 from harness.parameters import number, require
 
@@ -394,6 +395,11 @@ class Target:
         log_p: ``log p_*``, used for the face drift ``sigma grad log p_*``.
         density: The continuous density the target was put on the grid from (None for a
             target given by cell values only, such as a smoothed one).
+        free: Free space (:class:`harness.domains.base.FreeSpace`) when the domain has
+            obstacles: ``p`` is 0 on blocked cells and integrates to 1 over the free
+            ones, ``grad`` is :meth:`~harness.domains.base.FreeSpace.gradient` (the
+            obstacles' faces reflect as walls do), ``log_p`` is 0 on blocked cells (no
+            face of theirs is open, so no law reads it). None: the plain rectangle.
     """
 
     grid: Grid
@@ -401,18 +407,33 @@ class Target:
     grad: np.ndarray
     log_p: np.ndarray
     density: Density | None = None
+    free: FreeSpace | None = None
 
     @classmethod
-    def from_values(cls, grid: Grid, p: np.ndarray) -> Target:
-        """A target given by its cell values ``p`` (strictly positive)."""
-        if not (np.isfinite(p).all() and p.min() > 0):
+    def from_values(cls, grid: Grid, p: np.ndarray, free: FreeSpace | None = None) -> Target:
+        """A target given by its cell values ``p`` (strictly positive; on free space, on
+        its free cells, and restricted to them with unit mass).
+        """
+        if free is None:
+            if not (np.isfinite(p).all() and p.min() > 0):
+                raise ValueError(
+                    f"a target must be finite and strictly positive on the grid (min {p.min():.3g})"
+                )
+            return cls(grid=grid, p=p, grad=grid.gradient(p), log_p=np.log(p))
+        on_free = p[free.cells]
+        if not (np.isfinite(on_free).all() and on_free.min() > 0):
             raise ValueError(
-                f"a target must be finite and strictly positive on the grid (min {p.min():.3g})"
+                "a target must be finite and strictly positive on free space "
+                f"(min {on_free.min():.3g})"
             )
-        return cls(grid=grid, p=p, grad=grid.gradient(p), log_p=np.log(p))
+        q = free.restrict(p)
+        log_p = np.log(np.where(free.cells, q, 1.0))
+        return cls(grid=grid, p=q, grad=free.gradient(q), log_p=log_p, free=free)
 
     @classmethod
-    def from_density(cls, grid: Grid, density: Density) -> Target:
-        """Put ``density`` on ``grid``; it must be strictly positive there."""
-        on_grid = cls.from_values(grid, density.on_grid(grid))
-        return cls(grid, on_grid.p, on_grid.grad, on_grid.log_p, density)
+    def from_density(cls, grid: Grid, density: Density, free: FreeSpace | None = None) -> Target:
+        """Put ``density`` on ``grid`` (restricted to ``free`` when given); it must be
+        strictly positive there.
+        """
+        on_grid = cls.from_values(grid, density.on_grid(grid), free)
+        return cls(grid, on_grid.p, on_grid.grad, on_grid.log_p, density, free)

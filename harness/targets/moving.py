@@ -293,4 +293,5 @@ class TargetPath:
             self.start.grad,
             self.start.log_p,
             self.density.at(0.0),
+            self.start.free,
         )
