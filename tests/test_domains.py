@@ -77,11 +77,14 @@ def test_points_in_discs_and_polygons_are_blocked_exactly():
     assert dom.blocked(x, y, 1.0).tolist() == [True, True, False, True, False, False]
 
 
-def test_the_rooms_are_one_component_through_their_door_and_two_without():
-    grid = Grid.square(30)
-    assert Rooms().resolve(grid).n_components == 1
-    shut = Rooms(door=(0.5, 0.5 + 1e-3)).resolve(grid)  # thinner than a cell: closed
-    assert shut.n_components == 2
+def test_the_rooms_are_one_component_through_their_door():
+    assert Rooms().resolve(Grid.square(30)).n_components == 1
+
+
+def test_a_door_narrower_than_a_cell_is_refused_naming_door():
+    with pytest.raises(ParameterError) as err:
+        Rooms(door=(0.5, 0.5 + 1e-3)).resolve(Grid.square(30))
+    assert err.value.name == "door" and "one cell" in err.value.allowed
 
 
 def test_no_open_face_crosses_a_wall_thinner_than_a_cell():
@@ -190,7 +193,8 @@ def test_the_gradient_reflects_at_closed_faces_as_at_walls():
     """A field that depends on x only, linear in each room: the gradient is exact inside
     each room, and a cell next to the wall uses itself as its ghost neighbour."""
     grid = Grid.square(20)
-    free = Rooms(door=(0.5, 0.5001)).resolve(grid)
+    wall = [[0.47, 0.0], [0.53, 0.0], [0.53, 1.0], [0.47, 1.0]]
+    free = Obstacles(polygons=[wall]).resolve(grid)
     f = grid.mesh[0].copy()
     g = free.gradient(f)
     left_edge = np.flatnonzero(free.cells[5])  # a row away from the door
@@ -213,3 +217,16 @@ def test_obstacles_that_cover_every_cell_are_refused_naming_domain(refusal):
                     "domain.discs=[{center:[0.5,0.5],radius:2.0}]"])  # fmt: skip
     assert line is not None and line.startswith("invalid config: domain='obstacles': "), line
     assert "free space" in line
+
+
+def test_a_target_in_a_component_no_robot_starts_in_is_refused(refusal):
+    wall = "[[[0.47,0.0],[0.53,0.0],[0.53,1.0],[0.47,1.0]]]"
+    line = refusal(["domain=obstacles", "grid.n=12", "~domain.discs",
+                    f"domain.polygons={wall}", "init=left_room"])  # fmt: skip
+    assert line is not None and line.startswith("invalid config: target="), line
+    assert "no robot starts" in line
+
+
+def test_a_door_narrower_than_a_cell_is_refused_on_the_command_line(refusal):
+    line = refusal(["domain=rooms", "grid.n=12", "domain.door=[0.5,0.55]"])
+    assert line is not None and line.startswith("invalid config: domain.door="), line

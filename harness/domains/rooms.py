@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.domains.base import Domain
+from harness.domains.base import Domain, FreeSpace
+from harness.grid import Grid
 from harness.parameters import number, require
 
 
@@ -47,6 +48,24 @@ class Rooms(Domain):
         low, high = number("door", pair[0]), number("door", pair[1])
         require(0 <= low < high <= 1, "door", door, "[low, high] with 0 <= low < high <= 1")
         self.door = (low, high)
+
+    def resolve(self, grid: Grid) -> FreeSpace:
+        """Free space on ``grid`` (:meth:`Domain.resolve`), once the door is known to be
+        at least one cell of the grid wide (a narrower one would be shut or open
+        depending on where the cells fall).
+
+        Raises:
+            ParameterError: naming ``door`` when it is narrower than a cell.
+        """
+        low, high = self.door
+        cell = grid.dy / (grid.y1 - grid.y0)
+        require(
+            high - low >= cell,
+            "door",
+            list(self.door),
+            f"a door at least one cell of the grid wide ({cell:.4g} of the side)",
+        )
+        return super().resolve(grid)
 
     def blocked(self, x: np.ndarray, y: np.ndarray, length: float) -> np.ndarray:
         """In the wall and not in the door."""

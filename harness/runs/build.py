@@ -55,7 +55,7 @@ from harness.runs.checks import (
     init_on_free_space,
     target_on_grid,
 )
-from harness.runs.domain import check_free_space, free_space
+from harness.runs.domain import check_free_space, check_reachable, free_space
 from harness.runs.identity import RunIdentity, choices, chosen_observers, resolved
 from harness.runs.resources import check_memory
 from harness.targets.densities import Density, Target
@@ -555,9 +555,10 @@ def build(cfg: DictConfig) -> Experiment:
     free = free_space(cfg, data, grid, component)
     target = target_on_grid(_on_path(cfg, component(cfg, "target", data), grid), grid, free)
     init = component(cfg, "init", data)
-    density_on_grid("init", init, grid)
+    init_cells = density_on_grid("init", init, grid)
     if free is not None:
         init_on_free_space(init, grid, free)
+        check_reachable(free, target, init_cells)
     model = FokkerPlanck(grid, float(cfg.dynamics.sigma), free=free)
     control = component(cfg, "control", data, target=target)
     _check_follows(target, control)

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from harness.domains.base import FreeSpace
@@ -37,8 +38,41 @@ def free_space(
     try:
         free = domain.resolve(grid)
     except ParameterError as err:
-        raise ConfigError("domain", choices(cfg).get("domain", domain.name), err.allowed) from None
+        if err.name == "domain":
+            raise ConfigError(
+                "domain", choices(cfg).get("domain", domain.name), err.allowed
+            ) from None
+        raise ConfigError(f"domain.{err.name}", err.value, err.allowed) from None
     return None if free.everywhere else free
+
+
+def check_reachable(free: FreeSpace | None, target: Target, init_cells: np.ndarray) -> None:
+    """Every component of free space where the target puts mass holds some of the initial
+    density: no law moves robots or mass between components (closed faces carry no
+    flux, and the robots reflect at obstacles).
+
+    Args:
+        free: The run's free space (None: the square, one component).
+        target: The target on the grid (``p_*``, 0 on blocked cells).
+        init_cells: The initial density's cell values ``(ny, nx)``.
+
+    Raises:
+        ConfigError: naming ``target`` and the mass no robot can reach.
+    """
+    if free is None or free.n_components < 2:
+        return
+    g = free.grid
+    for k in range(free.n_components):
+        inside = free.labels == k
+        wanted = g.integrate(np.where(inside, target.p, 0.0))
+        start = g.integrate(np.where(inside, init_cells, 0.0))
+        if wanted > 0 and not start > 0:
+            raise ConfigError(
+                "target",
+                target.density,
+                f"a target reachable from the start: it puts mass {wanted:.3g} in component {k} "
+                "of free space, where no robot starts and none can enter",
+            )
 
 
 def check_free_space(
