@@ -91,7 +91,8 @@ class Estimator(Protocol):
         uses_kde: Whether it reads the plant's measurement (the loop measures only then).
 
     Optional members: ``resolution`` (:func:`resolution`), ``check``
-    (:func:`check_parts`), ``publishes`` (:func:`publishes`).
+    (:func:`check_parts`), ``publishes`` (:func:`publishes`), ``carries``
+    (:func:`carries`).
     """
 
     uses_kde: bool
@@ -204,6 +205,20 @@ def publishes(estimator: Estimator) -> tuple[str, ...]:
     does not say, so a guard may require them only of an estimator that publishes them.
     """
     return tuple(str(name) for name in getattr(estimator, "publishes", None) or ())
+
+
+CARRIED = ("traces", "reference")
+"""What an estimate may hold besides ``(p_hat, q_hat)`` (:func:`carries`): the filters'
+covariance traces (``Estimate.trace_P`` ...), and per robot the centralised reference's
+estimate (``RobotEstimates``' reference, from which a command's ``reference`` comes)."""
+
+
+def carries(estimator: Estimator) -> frozenset[str]:
+    """Which of :data:`CARRIED` every estimate of ``estimator`` holds (its optional
+    ``carries``); none when it does not say, so a guard may require the metrics made
+    from them (``trace_P`` ..., ``command_disagreement``) only of an estimator that says.
+    """
+    return frozenset(str(c) for c in getattr(estimator, "carries", None) or ())
 
 
 def on_free_space(part: object) -> bool:

@@ -127,6 +127,13 @@ NOT_GIVEN_BY_THIS_RUN = [
     (["observers.guard.required=[mean_degree,t]"], "mean_degree"),
     (["plant=meanfield", "observers.guard.required=[swarm_l2]"], "swarm_l2"),
     (["control=psg", "observers.guard.required=[limit_swarm_l2]"], "limit_swarm_l2"),
+    (["observers.guard.required=[tracking_error]"], "tracking_error"),
+    (["plant=unicycles", "observers.guard.required=[command_age]"], "command_age"),
+    (["observers.guard.required=[command_disagreement]"], "command_disagreement"),
+    (["estimator=exact", "observers.guard.required=[kde_l2]"], "kde_l2"),
+    (["estimator=kde", "observers.guard.required=[trace_P]"], "trace_P"),
+    (["estimator=smoothed", "observers.guard.required=[trace_Q_grad]"], "trace_Q_grad"),
+    (["estimator=distributed", "observers.guard.required=[kde_l2]"], "kde_l2"),
 ]
 """Metrics some runs give and these do not: the network metrics without the decentralised
 estimator, the robots' metrics without robots, the limit's without a law's mean field."""
@@ -142,9 +149,20 @@ def test_the_guard_requires_only_metrics_this_run_gives(refusal, overrides, metr
 
 
 def test_the_guard_may_require_network_metrics_of_the_decentralised_estimator(refusal):
-    for fine in ("[consensus_l2]", "[mean_degree,central_gap_l2]"):
+    for fine in ("[consensus_l2]", "[mean_degree,central_gap_l2]", "[command_disagreement]",
+                 "[trace_P,trace_Q_grad]"):  # fmt: skip
         overrides = [*TINY, "estimator=distributed", f"observers.guard.required={fine}"]
         assert refusal(overrides) is None, fine
+
+
+def test_the_guard_may_require_what_the_filters_and_the_kde_give(refusal):
+    kde_l2 = "observers.guard.required=[kde_l2]"
+    for overrides in (
+        ["observers.guard.required=[kde_l2,trace_P,trace_P_grad,effort]"],
+        ["estimator=kde", kde_l2],
+        ["plant=meanfield", "estimator=kde", kde_l2],
+    ):
+        assert refusal([*TINY, *overrides]) is None, overrides
 
 
 UNCADENCED = [o for o in TINY if not o.startswith("log.positions_every")]

@@ -26,7 +26,7 @@ from harness.grid import Grid
 from harness.observers.base import RunContext, Status
 from harness.observers.theory import lyapunov, poincare_constant
 from harness.parameters import number
-from harness.protocols import Control, law_record
+from harness.protocols import Control, Estimator, carries, law_record
 from harness.records import StepRecord
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
@@ -46,6 +46,10 @@ FIELD_KEYS = (
     "trace_Q_grad",
 )
 """The field metrics (:func:`metrics`), in log order."""
+
+
+TRACE_KEYS = ("trace_P", "trace_Q", "trace_P_grad", "trace_Q_grad")
+"""The filters' covariance traces among :data:`FIELD_KEYS` (None without filters)."""
 
 
 def metrics(grid: Grid, target: Target, rec: StepRecord) -> dict[str, float | None]:
@@ -90,13 +94,28 @@ class FieldMetrics:
     Args:
         grid, target, control: Run-time arguments.
         sigma: The robots' noise intensity (length^2 / s), for ``rate_exact``.
+        estimator: The run's estimator (run-time argument): what this observer gives
+            at every step (:attr:`gives`) depends on it. None (an observer built alone):
+            every field metric.
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
-    gives = FIELD_KEYS
 
-    def __init__(self, grid: Grid, target: Target, control: Control, sigma: float) -> None:
+    def __init__(
+        self,
+        grid: Grid,
+        target: Target,
+        control: Control,
+        sigma: float,
+        estimator: Estimator | None = None,
+    ) -> None:
         self.grid, self.target, self.control = grid, target, control
+        self.gives: tuple[str, ...] = FIELD_KEYS
+        if estimator is not None:
+            absent = set() if estimator.uses_kde else {"kde_l2"}
+            if "traces" not in carries(estimator):
+                absent |= set(TRACE_KEYS)
+            self.gives = tuple(k for k in FIELD_KEYS if k not in absent)
         self.sigma = number("sigma", sigma, 0.0)
         self.path = TargetPath(target)
 

@@ -43,7 +43,7 @@ import numpy as np
 from harness.compiled.agents import speed_sums
 from harness.grid import Grid
 from harness.observers.base import RunContext, Status
-from harness.protocols import REPORTED, Plant, reported
+from harness.protocols import REPORTED, Estimator, Plant, carries, reported
 from harness.records import StepRecord
 from harness.velocity import interpolate
 
@@ -116,14 +116,20 @@ class Motion:
         grid: The grid (run-time argument).
         plant: The plant (run-time argument), whose ``tracking_error`` and
             ``command_age`` are reported when it has them.
+        estimator: The run's estimator (run-time argument). What this observer gives at
+            every step (:attr:`gives`): the motion metrics, and ``command_disagreement``
+            when the estimator's estimates carry the centralised reference
+            (:func:`harness.protocols.carries`). The plant's numbers come only from its
+            first move on (None at the start), so they are never promised at every step.
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
-    gives = (*MOTION_KEYS, *ROBOT_KEYS, DISAGREEMENT_KEY)
 
-    def __init__(self, grid: Grid, plant: Plant) -> None:
+    def __init__(self, grid: Grid, plant: Plant, estimator: Estimator | None = None) -> None:
         self.grid = grid
         self.plant = plant
+        reference = estimator is not None and "reference" in carries(estimator)
+        self.gives: tuple[str, ...] = (*MOTION_KEYS, *((DISAGREEMENT_KEY,) if reference else ()))
 
     def initialize(self, run: RunContext) -> None:
         """Nothing to prepare."""

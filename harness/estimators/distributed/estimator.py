@@ -254,6 +254,7 @@ class DistributedEstimator:
 
     uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
     publishes = NETWORK_KEYS  # every estimate carries them (network_figures)
+    carries = ("traces", "reference")  # the reference filters'; each robot's reference
 
     def __init__(
         self,

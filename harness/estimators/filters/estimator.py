@@ -36,6 +36,7 @@ class FilterEstimator:
     """
 
     uses_kde = True
+    carries = ("traces",)  # every estimate holds the filters' covariance traces
 
     def resolution(self, measured: float | None) -> float | None:
         """The measurement's resolution: the filters estimate only the cosine modes of
