@@ -156,16 +156,23 @@ class Inputs:
 
 
 def png_problem(data: bytes) -> str:
-    """What makes ``data`` other than a whole PNG file, in words (empty when nothing
-    does): the signature, then chunks each of a length that fits in the file and a
-    matching CRC-32, ``IHDR`` first (13 bytes, a width and height above 0), at least
-    one ``IDAT``, and ``IEND`` last, with nothing after it; then the ``IDAT`` data must
-    inflate (:func:`pixels_problem`) to exactly the scanlines ``IHDR`` declares, so a
-    damaged stream under recomputed CRCs is found too.
+    """What makes ``data`` other than a whole PNG file a viewer can show, in words (empty
+    when nothing does).
+
+    In order: the signature; chunks each of a length that fits in the file and a
+    matching CRC-32; ``IHDR`` first (13 bytes: a width and height from 1 to
+    :data:`MAX_SIDE`, at most :data:`MAX_FIGURE_PIXELS` pixels, a colour type with one
+    of its allowed bit depths, compression and filter methods 0, interlace 0 or 1);
+    ``PLTE`` before the pixels of a palette image; the ``IDAT`` chunks consecutive;
+    ``IEND`` last with nothing after it. Then the ``IDAT`` data must inflate
+    (:func:`pixels_problem`) to exactly the scanlines ``IHDR`` declares, each with a
+    known filter type, so a damaged stream under recomputed CRCs is found too. Last,
+    Pillow (matplotlib's reader of PNG files) must decode it. Nothing is inflated or
+    decoded before the declared image is known to be within the pixel budget.
     """
     if not data.startswith(PNG_SIGNATURE):
         return "no PNG signature"
-    at, first, header, stream = len(PNG_SIGNATURE), True, b"", []
+    at, header, stream, kinds = len(PNG_SIGNATURE), b"", [], []
     while True:
         if at + 12 > len(data):
             return f"cut short at byte {at} (no IEND chunk)"
@@ -176,15 +183,18 @@ def png_problem(data: bytes) -> str:
         body = data[at + 8 : end - 4]
         if zlib.crc32(data[at + 4 : end - 4]) != struct.unpack(">I", data[end - 4 : end])[0]:
             return f"the {kind[:4]!r} chunk at byte {at} fails its CRC (damaged)"
-        if first:
+        if not kinds:
             if kind != b"IHDR" or length != 13:
                 return "its first chunk is not a 13-byte IHDR"
-            width, height = struct.unpack(">II", body[:8])
-            if width == 0 or height == 0:
-                return f"an image of {width} x {height} pixels"
-            first, header = False, body
+            problem = header_problem(body)
+            if problem:
+                return problem
+            header = body
         if kind == b"IDAT":
+            if stream and kinds[-1] != b"IDAT":
+                return "its IDAT chunks are not consecutive"
             stream.append(body)
+        kinds.append(kind)
         at = end
         if kind == b"IEND":
             break
@@ -192,11 +202,23 @@ def png_problem(data: bytes) -> str:
         return "no IDAT chunk (no pixels)"
     if at != len(data):
         return f"{len(data) - at} bytes after its IEND chunk"
-    return pixels_problem(header, b"".join(stream))
+    if header[9] == 3 and (b"PLTE" not in kinds or kinds.index(b"PLTE") > kinds.index(b"IDAT")):
+        return "a palette image without a PLTE chunk before its pixels"
+    return pixels_problem(header, b"".join(stream)) or decoder_problem(data)
 
+
+MAX_SIDE = 0x7FFFFFFF
+"""Largest width or height a PNG may declare (the format's own limit)."""
+
+MAX_FIGURE_PIXELS = 1 << 24
+"""Largest figure accepted (pixels): about 16.8 million, 4096 x 4096; a study's figure
+has about 1.5 million. Bounds what inflating and decoding one may allocate."""
 
 CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
 """Samples per pixel of each PNG colour type (grey, RGB, palette, grey + alpha, RGBA)."""
+
+DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+"""The bit depths the PNG specification allows for each colour type."""
 
 ADAM7 = (
     (0, 0, 8, 8),
@@ -210,31 +232,56 @@ ADAM7 = (
 """The seven passes of an interlaced PNG: first column, first row, column step, row step."""
 
 
+def header_problem(header: bytes) -> str:
+    """What is wrong with a 13-byte ``IHDR`` body (empty when nothing is)."""
+    width, height, depth, colour, compression, method, interlace = struct.unpack(">IIBBBBB", header)
+    if not (0 < width <= MAX_SIDE and 0 < height <= MAX_SIDE):
+        return f"an image of {width} x {height} pixels"
+    if width * height > MAX_FIGURE_PIXELS:
+        return f"an image of {width} x {height} pixels, more than the {MAX_FIGURE_PIXELS} allowed"
+    if depth not in DEPTHS.get(colour, ()):
+        return (
+            f"IHDR declares colour type {colour} with bit depth {depth}, which PNG does not allow"
+        )
+    if compression != 0 or method != 0 or interlace not in (0, 1):
+        return (
+            f"IHDR declares compression method {compression}, filter method {method}, "
+            f"interlace {interlace} (PNG allows 0, 0 and 0 or 1)"
+        )
+    return ""
+
+
+def scanlines(header: bytes) -> list[tuple[int, int]]:
+    """``(rows, bytes per row including the filter byte)`` of each pass of the image
+    ``header`` declares (one pass for a plain image, the seven Adam7 passes for an
+    interlaced one; passes without pixels left out).
+    """
+    width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", header)
+    bits = CHANNELS[colour] * depth
+    out = []
+    for x0, y0, dx, dy in ADAM7 if interlace else ((0, 0, 1, 1),):
+        columns, rows = -(-(width - x0) // dx), -(-(height - y0) // dy)
+        if columns > 0 and rows > 0:
+            out.append((rows, 1 + -(-columns * bits // 8)))
+    return out
+
+
 def pixels_problem(header: bytes, stream: bytes) -> str:
     """What is wrong with a PNG's concatenated ``IDAT`` data, in words (empty when
     nothing is).
 
     The data must be one zlib stream (its Adler-32 checked by ``zlib``) that inflates to
-    exactly ``sum over passes of rows * (1 + ceil(columns * bits per pixel / 8))`` bytes,
-    with ``bits per pixel = samples per pixel * bit depth`` from ``IHDR`` (one pass for a
-    plain image, the seven Adam7 passes for an interlaced one), and each scanline of a
-    plain image must start with a filter type 0 to 4. Inflation stops one byte past the
-    declared size, so a stream that claims more costs no more memory than the image.
+    exactly the bytes of :func:`scanlines` (``rows * (1 + ceil(columns * bits per pixel
+    / 8))`` summed over the passes), every scanline starting with a filter type 0 to 4.
+    Inflation stops one byte past the declared size, which ``IHDR``'s checks
+    (:func:`header_problem`) keep within :data:`MAX_FIGURE_PIXELS` pixels.
 
     Args:
-        header: The 13-byte ``IHDR`` body.
+        header: The 13-byte ``IHDR`` body, already checked.
         stream: The ``IDAT`` chunks' data, joined in order.
     """
-    width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", header)
-    if colour not in CHANNELS or depth not in (1, 2, 4, 8, 16) or interlace not in (0, 1):
-        return f"IHDR declares colour type {colour}, bit depth {depth}, interlace {interlace}"
-    bits = CHANNELS[colour] * depth
-    passes = ADAM7 if interlace else ((0, 0, 1, 1),)
-    size = 0
-    for x0, y0, dx, dy in passes:
-        columns, rows = -(-(width - x0) // dx), -(-(height - y0) // dy)
-        if columns > 0 and rows > 0:
-            size += rows * (1 + -(-columns * bits // 8))
+    passes = scanlines(header)
+    size = sum(rows * row for rows, row in passes)
     inflater = zlib.decompressobj()
     try:
         pixels = inflater.decompress(stream, size + 1)
@@ -242,10 +289,28 @@ def pixels_problem(header: bytes, stream: bytes) -> str:
         return f"its pixel data does not inflate ({error}; damaged)"
     if len(pixels) != size or not inflater.eof or inflater.unused_data:
         return f"its pixel data is not the {size} bytes IHDR declares (damaged)"
-    if not interlace:
-        row = size // height
-        if any(pixels[i] > 4 for i in range(0, size, row)):
+    at = 0
+    for rows, row in passes:
+        if any(pixels[at + k * row] > 4 for k in range(rows)):
             return "a scanline with an unknown filter type (damaged)"
+        at += rows * row
+    return ""
+
+
+def decoder_problem(data: bytes) -> str:
+    """What Pillow, the decoder matplotlib reads PNG files with, says of ``data`` (empty
+    when it decodes the whole image). Called only on a file whose pixel count is
+    within :data:`MAX_FIGURE_PIXELS`.
+    """
+    import io
+
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(data)) as image:
+            image.load()
+    except Exception as err:  # any refusal of the decoder: the figure could not be shown
+        return f"Pillow cannot decode it ({type(err).__name__}: {str(err)[:120]})"
     return ""
 
 

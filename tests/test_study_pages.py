@@ -309,6 +309,74 @@ def _too_many_pixels(data: bytes) -> bytes:
     return _with_idat(data, zlib.compress(pixels + bytes(1 << 20)))
 
 
+def _chunk(kind: bytes, body: bytes) -> bytes:
+    return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+
+def _png(ihdr: tuple, pixels: bytes, between: bytes = b"", split: bool = False) -> bytes:
+    """A PNG from its IHDR fields ``(w, h, depth, colour, compression, filter, interlace)``
+    and its raw scanlines ``pixels`` (zlib-compressed here); ``between`` goes between two
+    halves of the IDAT data when ``split``."""
+    head = _chunk(b"IHDR", struct.pack(">IIBBBBB", *ihdr))
+    data = zlib.compress(pixels)
+    if split:
+        idat = _chunk(b"IDAT", data[: len(data) // 2]) + between
+        idat += _chunk(b"IDAT", data[len(data) // 2 :])
+    else:
+        idat = _chunk(b"IDAT", data)
+    palette = _chunk(b"PLTE", bytes(range(48))) if ihdr[3] == 3 else b""
+    return PNG_SIGNATURE + head + palette + idat + _chunk(b"IEND", b"")
+
+
+ADAM7_8X8 = [(1, 1), (1, 1), (1, 2), (2, 2), (2, 4), (4, 4), (4, 8)]
+"""(rows, columns) of the seven Adam7 passes of an 8 x 8 image (the PNG specification)."""
+
+
+def _interlaced(filter_of_pass_4: int) -> bytes:
+    rows = []
+    for k, (n_rows, cols) in enumerate(ADAM7_8X8):
+        for _ in range(n_rows):
+            rows.append(bytes([filter_of_pass_4 if k == 3 else 0]) + bytes(range(cols)))
+    return _png((8, 8, 8, 0, 0, 0, 1), b"".join(rows))
+
+
+def _plain(width: int, height: int, depth: int, colour: int, row: int, **kw) -> bytes:
+    method = kw.pop("method", 0)
+    return _png((width, height, depth, colour, 0, method, 0), (b"\0" + bytes(row)) * height, **kw)
+
+
+def test_a_valid_interlaced_png_is_accepted():
+    assert png_problem(_interlaced(0)) == ""
+
+
+@pytest.mark.parametrize(
+    "data, why",
+    [
+        (_interlaced(7), "unknown filter type"),
+        (_plain(4, 4, 16, 3, 8), "bit depth 16"),  # a palette of 16 bits
+        (_plain(4, 4, 4, 2, 6), "bit depth 4"),  # RGB of 4 bits
+        (_plain(4, 4, 8, 0, 4, method=1), "filter method 1"),
+        (_plain(4, 4, 8, 0, 4, split=True, between=_chunk(b"tEXt", b"a\0b")), "not consecutive"),
+        (_png((0x7FFFFFFF, 0x7FFFFFFF, 16, 6, 0, 0, 0), b"\0" * 100), "more than the"),
+        (_png((0xFFFFFFFF, 0xFFFFFFFF, 8, 0, 0, 0, 0), b"\0" * 100), "pixels"),
+        (_png((65536, 81920, 8, 0, 0, 0, 0), b"\0" * 1000), "more than the"),
+    ],
+    ids=["interlaced-bad-filter", "palette-depth-16", "rgb-depth-4", "filter-method-1",
+         "idat-not-consecutive", "huge-dimensions", "dimensions-beyond-png", "bomb"],
+)  # fmt: skip
+def test_a_png_no_decoder_shows_is_refused_before_anything_is_inflated(data, why):
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        problem = png_problem(data)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert why in problem, problem
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB to check a PNG of {len(data)} bytes"
+
+
 def test_the_idat_rebuilder_keeps_a_good_png_good():
     good = (DOCS / "sweeps" / "link.png").read_bytes()
     assert png_problem(_with_idat(good, _idat(good))) == ""
