@@ -115,13 +115,13 @@ OBSTACLE_GREY = "0.6"
 
 def draw_obstacles(ax, run: RunLog) -> None:
     """The run's obstacles (``/domain/obstacles``, :class:`analysis.load.DomainShapes`),
-    filled grey beneath everything else on ``ax`` (``zorder`` 0); nothing for a run on
-    the square.
+    filled grey beneath everything else on ``ax`` (``zorder`` -1; images are drawn at
+    0, points at 1); nothing for a run on the square.
     """
     if run.domain is None or not len(run.domain.rectangles):
         return
     boxes = [Rectangle((x0, y0), x1 - x0, y1 - y0) for x0, y0, x1, y1 in run.domain.rectangles]
-    ax.add_collection(PatchCollection(boxes, facecolor=OBSTACLE_GREY, edgecolor="none", zorder=0))
+    ax.add_collection(PatchCollection(boxes, facecolor=OBSTACLE_GREY, edgecolor="none", zorder=-1))
 
 
 def on_free(run: RunLog, values: np.ndarray) -> np.ndarray:
@@ -132,6 +132,15 @@ def on_free(run: RunLog, values: np.ndarray) -> np.ndarray:
     if free is None or free.shape != values.shape:
         return values
     return np.ma.masked_where(~free, values)
+
+
+def field_cmap(run: RunLog):
+    """The colour map of a field's image: matplotlib's default (None) on the square;
+    with obstacles the default with its blocked (masked) cells grey, like the obstacles.
+    """
+    if run.domain is None or run.domain.free is None:
+        return None
+    return matplotlib.colormaps[plt.rcParams["image.cmap"]].with_extremes(bad=OBSTACLE_GREY)
 
 
 def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
@@ -164,7 +173,12 @@ def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
         ts, field = p_hat.at(t)
         draw_obstacles(axes[1, col], run)
         im = axes[1, col].imshow(
-            on_free(run, field[0]), origin="lower", extent=extent, vmin=0, vmax=vmax
+            on_free(run, field[0]),
+            origin="lower",
+            extent=extent,
+            vmin=0,
+            vmax=vmax,
+            cmap=field_cmap(run),
         )
         axes[1, col].set_title(rf"$\hat p$, t = {ts:.1f} s")
         tv, v = vel.at(t)
@@ -193,7 +207,12 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
     tgt = runs[0].fields["/fields/p_target"]
     draw_obstacles(ax0, runs[0])
-    im = ax0.imshow(on_free(runs[0], tgt.values[0, 0]), origin="lower", extent=tgt.extent())
+    im = ax0.imshow(
+        on_free(runs[0], tgt.values[0, 0]),
+        origin="lower",
+        extent=tgt.extent(),
+        cmap=field_cmap(runs[0]),
+    )
     ax0.set_title(r"target $p_*$")
     fig.colorbar(im, ax=ax0, label="1/length$^2$")
     for run in runs:
@@ -280,6 +299,7 @@ def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:
         extent=extent,
         vmin=0,
         vmax=float(np.nanmax(p_hat.values)),
+        cmap=field_cmap(run),
     )
     title = fig.suptitle("")
 
