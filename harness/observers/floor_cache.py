@@ -11,6 +11,8 @@ The floors of ``swarm_l2`` and ``swarm_w2`` (:meth:`harness.observers.swarm.Swar
   ``bin_factor``, ``exact_max_robots`` and the binning nodes they give) and ``K_h p_*``;
 * the target measure of the transport (method, refinement, its grid, its atoms and
   masses), the EMD threshold and the sliced distance's directions;
+* on a domain with obstacles, free space: its cells, faces and the robots' raster
+  (:func:`free_inputs`; absent on the square, whose keys do not change);
 * the draws ``D`` and the seed stream (``numpy.random.default_rng([seed, 2])``, PCG64);
 * the code: :data:`FLOOR_VERSION` and the versions of numpy, scipy, POT and numba.
 
