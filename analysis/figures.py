@@ -11,6 +11,10 @@
   95 % band from the ``theory`` record; for runs whose estimates are exact, ``||p_hat -
   p|| = 0`` at every step, the theoretical rate ``(alpha + sigma) lambda``, dotted).
 * ``run_<run>.gif``: the swarm over ``p_*`` and ``p_hat`` through the run.
+
+A run with obstacles (its log's ``/domain/mask`` and ``/domain/obstacles``) has its
+obstacles filled grey beneath the fields, which are left out on blocked cells, and the
+robots (:func:`draw_obstacles`, :func:`on_free`).
 """
 
 from __future__ import annotations
@@ -26,6 +30,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.animation import FuncAnimation, PillowWriter
+from matplotlib.collections import PatchCollection
+from matplotlib.patches import Rectangle
 
 from analysis.load import LogError, RunLog, load_run
 from analysis.output import atomic_path
@@ -103,6 +109,40 @@ def problem(run: RunLog) -> str | None:
     return None
 
 
+OBSTACLE_GREY = "0.6"
+"""Fill colour of the obstacles in every panel of a run with obstacles."""
+
+
+def draw_obstacles(ax, run: RunLog) -> None:
+    """The run's obstacles (``/domain/obstacles``, :class:`analysis.load.DomainShapes`),
+    filled grey beneath everything else on ``ax`` (``zorder`` -1; images are drawn at
+    0, points at 1); nothing for a run on the square.
+    """
+    if run.domain is None or not len(run.domain.rectangles):
+        return
+    boxes = [Rectangle((x0, y0), x1 - x0, y1 - y0) for x0, y0, x1, y1 in run.domain.rectangles]
+    ax.add_collection(PatchCollection(boxes, facecolor=OBSTACLE_GREY, edgecolor="none", zorder=-1))
+
+
+def on_free(run: RunLog, values: np.ndarray) -> np.ndarray:
+    """``values`` ``(ny, nx)`` masked on the run's blocked cells (``/domain/mask``), so
+    an image of them shows the obstacles beneath; unchanged on the square.
+    """
+    free = None if run.domain is None else run.domain.free
+    if free is None or free.shape != values.shape:
+        return values
+    return np.ma.masked_where(~free, values)
+
+
+def field_cmap(run: RunLog):
+    """The colour map of a field's image: matplotlib's default (None) on the square;
+    with obstacles the default with its blocked (masked) cells grey, like the obstacles.
+    """
+    if run.domain is None or run.domain.free is None:
+        return None
+    return matplotlib.colormaps[plt.rcParams["image.cmap"]].with_extremes(bad=OBSTACLE_GREY)
+
+
 def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
     """Swarm, ``p_hat`` and ``v`` at four times."""
     p_hat = run.fields["/fields/p_hat"]
@@ -120,7 +160,8 @@ def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
         if run.positions:
             i = int(np.argmin(np.abs(run.positions_t - t)))
             pts = run.positions[i]
-            ax.contour(xc, yc, target, levels=6, colors="0.75", linewidths=0.6)
+            draw_obstacles(ax, run)
+            ax.contour(xc, yc, on_free(run, target), levels=6, colors="0.75", linewidths=0.6)
             ax.scatter(pts[:, 0], pts[:, 1], s=1.5, c="k", alpha=0.7, linewidths=0)
             ax.set_title(f"swarm, t = {run.positions_t[i]:.1f} s")
         else:
@@ -130,10 +171,19 @@ def figure1(run: RunLog, out: Path, stem: str) -> list[Path]:
         ax.set_ylim(extent[2], extent[3])
         ax.set_aspect("equal")
         ts, field = p_hat.at(t)
-        im = axes[1, col].imshow(field[0], origin="lower", extent=extent, vmin=0, vmax=vmax)
+        draw_obstacles(axes[1, col], run)
+        im = axes[1, col].imshow(
+            on_free(run, field[0]),
+            origin="lower",
+            extent=extent,
+            vmin=0,
+            vmax=vmax,
+            cmap=field_cmap(run),
+        )
         axes[1, col].set_title(rf"$\hat p$, t = {ts:.1f} s")
         tv, v = vel.at(t)
         speed = np.hypot(v[0], v[1])
+        draw_obstacles(axes[2, col], run)
         q = axes[2, col].quiver(
             xc[::step],
             yc[::step],
@@ -156,7 +206,13 @@ def figure2(runs: list[RunLog], out: Path) -> list[Path]:
     """Target and convergence error of every run."""
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(11, 4.2), constrained_layout=True)
     tgt = runs[0].fields["/fields/p_target"]
-    im = ax0.imshow(tgt.values[0, 0], origin="lower", extent=tgt.extent())
+    draw_obstacles(ax0, runs[0])
+    im = ax0.imshow(
+        on_free(runs[0], tgt.values[0, 0]),
+        origin="lower",
+        extent=tgt.extent(),
+        cmap=field_cmap(runs[0]),
+    )
     ax0.set_title(r"target $p_*$")
     fig.colorbar(im, ax=ax0, label="1/length$^2$")
     for run in runs:
@@ -230,17 +286,20 @@ def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:
     fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(8, 4), constrained_layout=True)
     extent = p_hat.extent()
     xc, yc = p_hat.centres()
-    ax0.contour(xc, yc, target, levels=6, colors="0.7", linewidths=0.6)
+    draw_obstacles(ax0, run)
+    draw_obstacles(ax1, run)
+    ax0.contour(xc, yc, on_free(run, target), levels=6, colors="0.7", linewidths=0.6)
     scat = ax0.scatter([], [], s=1.5, c="k", linewidths=0)
     ax0.set_xlim(extent[0], extent[1])
     ax0.set_ylim(extent[2], extent[3])
     ax0.set_aspect("equal")
     im = ax1.imshow(
-        p_hat.values[0, 0],
+        on_free(run, p_hat.values[0, 0]),
         origin="lower",
         extent=extent,
         vmin=0,
         vmax=float(np.nanmax(p_hat.values)),
+        cmap=field_cmap(run),
     )
     title = fig.suptitle("")
 
@@ -249,7 +308,7 @@ def animation(run: RunLog, out: Path, stem: str, max_frames: int = 80) -> Path:
         if run.positions:
             i = int(np.argmin(np.abs(run.positions_t - t)))
             scat.set_offsets(run.positions[i])
-        im.set_data(p_hat.values[frames[k], 0])
+        im.set_data(on_free(run, p_hat.values[frames[k], 0]))
         title.set_text(f"t = {t:.1f} s: swarm over p* contours (left), p_hat (right)")
         return scat, im, title
 

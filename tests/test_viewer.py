@@ -378,8 +378,9 @@ def test_layout_names_logged_topics_and_spans_the_target():
     for name, config in panels.items():
         if name.startswith("3D!"):
             topics = config["topics"]
-            assert set(topics) <= {*FIELD_TOPICS, "/swarm/positions"}
+            assert set(topics) <= {*FIELD_TOPICS, "/swarm/positions", "/domain/obstacles"}
             assert topics["/swarm/positions"]["visible"]
+            assert topics["/domain/obstacles"]["visible"]  # with the robots and the field
             (field,) = (t for t in topics if t.startswith("/fields/"))
             grids[field] = topics[field]
         elif name.startswith("Plot!"):

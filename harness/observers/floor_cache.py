@@ -11,6 +11,8 @@ The floors of ``swarm_l2`` and ``swarm_w2`` (:meth:`harness.observers.swarm.Swar
   ``bin_factor``, ``exact_max_robots`` and the binning nodes they give) and ``K_h p_*``;
 * the target measure of the transport (method, refinement, its grid, its atoms and
   masses), the EMD threshold and the sliced distance's directions;
+* on a domain with obstacles, free space: its cells, faces and the robots' raster
+  (:func:`free_inputs`; absent on the square, whose keys do not change);
 * the draws ``D`` and the seed stream (``numpy.random.default_rng([seed, 2])``, PCG64);
 * the code: :data:`FLOOR_VERSION` and the versions of numpy, scipy, POT and numba.
 
@@ -63,6 +65,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.domains.base import FreeSpace
 from harness.estimators.kde import KDE
 from harness.files import UnreadableFile, read_bytes
 from harness.grid import Grid
@@ -73,6 +76,12 @@ FLOOR_VERSION = 1
 floors for the same inputs (:func:`harness.observers.swarm_metrics.floors`, the KDE, the
 transport, the sampling of the densities of :data:`DESCRIBED`, the target measure,
 :meth:`harness.observers.swarm.SwarmTruth.floors`): every stored floor is then recomputed once."""
+
+
+FREE_SAMPLING = 1
+"""Version of the draws on free space (:class:`harness.observers.swarm_metrics.FreeSampler`,
+:func:`harness.observers.swarm_metrics.free_target_measure`), part of the inputs of a
+floor on a domain with obstacles only, so the square's keys do not change with it."""
 
 
 DESCRIBED = (Uniform, Box, GaussianMixture)
@@ -224,12 +233,15 @@ def floor_inputs(
 
     Returns:
         The inputs, or None when the target has no faithful description
-        (:func:`describe_density`): such floors are not cached.
+        (:func:`describe_density`): such floors are not cached. On a domain with
+        obstacles (``target.free``) the floors draw from the target's cell values
+        (:class:`harness.observers.swarm_metrics.FreeSampler`), so its density need not
+        be described, and the inputs also hold free space (:func:`free_inputs`).
     """
     density = describe_density(target.density)
-    if density is None:
+    if density is None and target.free is None:
         return None
-    return {
+    inputs: dict[str, Any] = {
         "version": FLOOR_VERSION,
         "packages": package_versions(),
         "target": {
@@ -251,6 +263,24 @@ def floor_inputs(
         "measure": measure,
         "draws": int(draws),
         "seed": {"entropy": [int(s) for s in seed], "bit_generator": "PCG64"},
+    }
+    if target.free is not None:
+        inputs["free"] = free_inputs(target.free)
+    return inputs
+
+
+def free_inputs(free: FreeSpace) -> dict[str, Any]:
+    """Free space as the floors see it: the SHA-256 of its free cells, open faces and
+    the robots' raster (which the draws reject against), the raster's size, and the
+    version of the free-space sampling (:data:`FREE_SAMPLING`).
+    """
+    return {
+        "sampling": FREE_SAMPLING,
+        "cells_sha256": array_digest(free.cells.astype(np.uint8)),
+        "face_x_sha256": array_digest(free.face_x.astype(np.uint8)),
+        "face_y_sha256": array_digest(free.face_y.astype(np.uint8)),
+        "raster_sha256": array_digest(free.raster.astype(np.uint8)),
+        "raster": [int(n) for n in free.raster.shape],
     }
 
 

@@ -21,14 +21,25 @@ Topics (a topic that does not apply to the plant or estimator is absent):
   ``theta`` (rad) as the rotation ``theta`` about z, at the positions' rate;
 * ``/metrics``: JSON (schema encoding ``jsonschema``, :data:`METRICS_SCHEMA`), one
   message per step, the keys of :data:`METRIC_KEYS` in that order (``null`` where not
-  applicable; the schema types every key as ``"number"``, see there).
+  applicable; the schema types every key as ``"number"``, see there); on a domain with
+  obstacles followed by :func:`harness.observers.swarm.domain_keys`
+  (``component_fraction_gap``, ``component_fraction_<c>``);
+* on a domain with obstacles only (``target.free``), once at t = 0:
+  ``/domain/mask``, a ``foxglove.Grid`` on the control grid with one uint8 field
+  ``free`` (1 on a free cell, 0 on a blocked one), and ``/domain/obstacles``, a
+  ``foxglove.SceneUpdate`` with one entity ``obstacles`` in frame ``world``: grey flat
+  cubes (``z`` from 0 to :data:`OBSTACLE_HEIGHT`) covering the blocked squares of the
+  robots' raster, merged into rectangles (:func:`obstacle_rectangles`);
 
 Grids follow ``foxglove.Grid``: ``column_count = nx`` cells along x, rows along y
 starting at the pose origin ``(x0, y0, 0)``, ``cell_size = (dx, dy)``, little-endian
 float32 values interleaved per cell, frame ``world``. Field messages every
 ``field_every`` steps (and at the last step), positions every ``positions_every``.
 
-Metadata records: ``config`` (key ``yaml``: the resolved config), ``choices`` (Hydra's
+Metadata records: ``domain`` (on a domain with obstacles only, :func:`domain_record`:
+``n_components``, ``component_mass``, the target's mass in each connected component of
+free space as a JSON list, ``free_cells``, ``free_area``, ``raster``), ``config`` (key
+``yaml``: the resolved config), ``choices`` (Hydra's
 choices: the option of each config group, ``plant: agents``, ``control: paper``, as the
 command line or :func:`harness.api.compose` chose them), ``provenance``
 (git commit and dirty flag, ``git_diff_sha256`` of the uncommitted code, package
@@ -57,16 +68,18 @@ from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.schema import register_schema
 
+from harness.domains.base import FreeSpace
 from harness.estimators.distributed.metrics import NETWORK_KEYS
 from harness.grid import Grid
 from harness.observers.base import Cadence, RunContext, Status
 from harness.observers.metrics import FIELD_KEYS
 from harness.observers.motion import DISAGREEMENT_KEY, MOTION_KEYS, ROBOT_KEYS
-from harness.observers.swarm import SWARM_KEYS
+from harness.observers.swarm import SWARM_KEYS, domain_keys
 from harness.parameters import integer
 from harness.protocols import Identity
 from harness.records import StepRecord
@@ -100,23 +113,30 @@ MISSING_VALUE = "null where not applicable"
 """How the schema describes a key that may be missing (JSON ``null``)."""
 
 
-METRICS_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "densityloop.Metrics",
-    "description": (
-        "Per-step metrics of a densityloop run; units in the README. Every key is written; "
-        "a key whose description says so is null where not applicable."
-    ),
-    "type": "object",
-    "properties": {
-        key: {"type": "number"}
-        if key in ALWAYS_NUMBERS
-        else {"type": "number", "description": MISSING_VALUE}
-        for key in METRIC_KEYS
-    },
-    "required": list(METRIC_KEYS),
-}
-"""The ``/metrics`` JSON schema. Each property has the single type ``"number"``:
+def metrics_schema(keys: tuple[str, ...]) -> dict[str, Any]:
+    """The ``/metrics`` JSON schema of messages holding ``keys`` (:data:`METRICS_SCHEMA`)."""
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": "densityloop.Metrics",
+        "description": (
+            "Per-step metrics of a densityloop run; units in the README. Every key is "
+            "written; a key whose description says so is null where not applicable."
+        ),
+        "type": "object",
+        "properties": {
+            key: {"type": "number"}
+            if key in ALWAYS_NUMBERS
+            else {"type": "number", "description": MISSING_VALUE}
+            for key in keys
+        },
+        "required": list(keys),
+    }
+
+
+METRICS_SCHEMA = metrics_schema(METRIC_KEYS)
+"""The ``/metrics`` JSON schema (on a domain with obstacles, :func:`metrics_schema` of
+:data:`METRIC_KEYS` followed by :func:`harness.observers.swarm.domain_keys`). Each
+property has the single type ``"number"``:
 Foxglove-protocol viewers (Foxglove Studio 1.x, Lichtblick) read a property's ``type``
 as one string and drop the whole channel for a type array such as
 ``["number", "null"]``. A missing value is still JSON ``null`` (the keys other than
@@ -222,6 +242,116 @@ def poses_message(t: float, positions: np.ndarray, headings: np.ndarray) -> byte
     return head.SerializeToString() + rec.tobytes()
 
 
+OBSTACLE_HEIGHT = 0.002
+"""Height of the obstacles' cubes in ``/domain/obstacles`` (length): above the grids,
+which lie at z = 0, so the viewer draws the obstacles over the (zero) cells they block."""
+
+
+OBSTACLE_COLOR = (0.45, 0.45, 0.45, 1.0)
+"""RGBA of the obstacles in ``/domain/obstacles`` (opaque grey)."""
+
+
+MAX_RECTANGLES = 4096
+"""Most rectangles :func:`obstacle_rectangles` draws; a raster that needs more is
+coarsened by 2 per side (a coarse square blocked when any of its squares is) until it
+fits, so the drawing covers every obstacle."""
+
+
+def _runs(row: np.ndarray) -> list[tuple[int, int]]:
+    """The runs ``[start, end)`` of True in a boolean row."""
+    edges = np.diff(np.concatenate([[0], row.astype(np.int8), [0]]))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    return list(zip(starts.tolist(), ends.tolist(), strict=True))
+
+
+def obstacle_rectangles(free: FreeSpace) -> np.ndarray:
+    """The blocked squares of the robots' raster (``free.raster``) as rectangles
+    ``(K, 4)``: ``x0, y0, x1, y1`` (length), each a maximal vertical stack of equal
+    runs of blocked squares along x. At most :data:`MAX_RECTANGLES`: a raster that needs
+    more is coarsened (see there).
+    """
+    g = free.grid
+    blocked = free.raster.astype(bool)
+    while True:
+        rows, cols = blocked.shape
+        sx, sy = (g.x1 - g.x0) / cols, (g.y1 - g.y0) / rows
+        out: list[tuple[float, float, float, float]] = []
+        open_: dict[tuple[int, int], int] = {}  # run -> first row of its stack
+        for j in range(rows + 1):
+            runs = set(_runs(blocked[j])) if j < rows else set()
+            for run in [r for r in open_ if r not in runs]:
+                j0 = open_.pop(run)
+                out.append((g.x0 + run[0] * sx, g.y0 + j0 * sy, g.x0 + run[1] * sx, g.y0 + j * sy))
+            for run in runs:
+                open_.setdefault(run, j)
+            if len(out) > MAX_RECTANGLES:
+                break
+        if len(out) <= MAX_RECTANGLES:
+            return np.array(out, dtype=float).reshape(-1, 4)
+        pad = ((0, rows % 2), (0, cols % 2))
+        b = np.pad(blocked, pad)
+        blocked = np.asarray(b.reshape(b.shape[0] // 2, 2, -1, 2).any(axis=(1, 3)), dtype=bool)
+
+
+def obstacles_message(free: FreeSpace) -> SceneUpdate:
+    """``/domain/obstacles``: one entity ``obstacles`` (frame ``world``, t = 0, no
+    lifetime limit) whose cubes are :func:`obstacle_rectangles`, ``OBSTACLE_HEIGHT``
+    high, their base at z = 0, grey.
+    """
+    msg = SceneUpdate()
+    entity = msg.entities.add()
+    entity.frame_id = "world"
+    entity.id = "obstacles"
+    entity.frame_locked = True
+    for x0, y0, x1, y1 in obstacle_rectangles(free):
+        cube = entity.cubes.add()
+        cube.pose.position.x, cube.pose.position.y = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+        cube.pose.position.z = 0.5 * OBSTACLE_HEIGHT
+        cube.pose.orientation.w = 1.0
+        cube.size.x, cube.size.y, cube.size.z = x1 - x0, y1 - y0, OBSTACLE_HEIGHT
+        cube.color.r, cube.color.g, cube.color.b, cube.color.a = OBSTACLE_COLOR
+    return msg
+
+
+def mask_message(free: FreeSpace) -> GridMsg:
+    """``/domain/mask``: a ``foxglove.Grid`` on the control grid, one uint8 field
+    ``free`` (1 free, 0 blocked), t = 0.
+    """
+    g = free.grid
+    msg = GridMsg()
+    msg.frame_id = "world"
+    msg.pose.position.x, msg.pose.position.y = g.x0, g.y0
+    msg.pose.orientation.w = 1.0
+    msg.column_count = g.nx
+    msg.cell_size.x, msg.cell_size.y = g.dx, g.dy
+    msg.cell_stride, msg.row_stride = 1, g.nx
+    msg.fields.add(name="free", offset=0, type=PackedElementField.UINT8)
+    msg.data = np.ascontiguousarray(free.cells, dtype=np.uint8).tobytes()
+    return msg
+
+
+def component_masses(p: np.ndarray, free: FreeSpace) -> np.ndarray:
+    """The target's mass in each connected component of free space (sums to 1)."""
+    masses = np.bincount(free.labels[free.cells], p[free.cells], free.n_components)
+    return masses / masses.sum()
+
+
+def domain_record(target: Target) -> dict[str, str]:
+    """The ``domain`` metadata record of a target on free space (see the module
+    docstring): string values, the masses as a JSON list of ``repr`` floats.
+    """
+    free = target.free
+    assert free is not None
+    masses = component_masses(target.p, free)
+    return {
+        "n_components": str(free.n_components),
+        "component_mass": json.dumps([float(m) for m in masses]),
+        "free_cells": str(int(free.cells.sum())),
+        "free_area": repr(free.free_area),
+        "raster": str(free.raster.shape[0]),
+    }
+
+
 def _json_number(x: Any) -> float | None:
     if x is None:
         return None
@@ -255,6 +385,7 @@ class McapLogger:
         positions_every: int,
     ) -> None:
         self.grid, self.target, self.identity = grid, target, identity
+        self.metric_keys = METRIC_KEYS + domain_keys(target.free)
         self._path = TargetPath(target)  # p_*(t) of a moving target, logged with the fields
         self.field_every = integer("field_every", field_every, 1)
         self.positions_every = integer("positions_every", positions_every, 1)
@@ -300,6 +431,8 @@ class McapLogger:
         live = run.publishers[0] if run.publishers else None
         self.open(run.out_dir / LOG_FILE, live, exclusive=run.exclusive)
         self.write_target(self.target.p)
+        if self.target.free is not None:
+            self.write_domain(self.target.free)
 
     def open(self, path: Path, live: LiveServer | None = None, exclusive: bool = True) -> None:
         """Create the file, register the schemas and write the ``config`` and
@@ -327,10 +460,12 @@ class McapLogger:
         self._metrics_schema = self.register_schema(
             name="densityloop.Metrics",
             encoding="jsonschema",
-            data=json.dumps(METRICS_SCHEMA).encode(),
+            data=json.dumps(metrics_schema(self.metric_keys)).encode(),
         )
         for name, record in self.identity.records().items():
             self._writer.add_metadata(name, record)
+        if self.target.free is not None:
+            self._writer.add_metadata("domain", domain_record(self.target))
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
         """Register a schema in the file (and keep it for the live view); its id."""
@@ -371,6 +506,14 @@ class McapLogger:
         """``/fields/p_target`` at t = 0."""
         self.write_grid("/fields/p_target", 0.0, p_target)
 
+    def write_domain(self, free: FreeSpace) -> None:
+        """``/domain/mask`` and ``/domain/obstacles`` at t = 0 (a domain with obstacles)."""
+        self._write("/domain/mask", 0.0, mask_message(free).SerializeToString(),
+                    self._grid_schema, "protobuf")  # fmt: skip
+        scene = register_schema(cast(McapWriter, self), SceneUpdate)
+        data = obstacles_message(free).SerializeToString()
+        self._write("/domain/obstacles", 0.0, data, scene, "protobuf")
+
     def handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
         """Log one step: metrics always, fields and positions at their rates (and,
         with the start record, the ``theory`` record).
@@ -384,7 +527,7 @@ class McapLogger:
             self.seconds += time.perf_counter() - t0
 
     def _handle(self, rec: StepRecord, metric_values: dict[str, float | None]) -> None:
-        payload = {k: _json_number(metric_values.get(k)) for k in METRIC_KEYS}
+        payload = {k: _json_number(metric_values.get(k)) for k in self.metric_keys}
         self._write("/metrics", rec.t, json.dumps(payload).encode(), self._metrics_schema, "json")
         if self.field_cadence.due(rec.step):
             t = rec.t

@@ -61,18 +61,23 @@ def metrics(grid: Grid, target: Target, rec: StepRecord) -> dict[str, float | No
     without a measurement); ``lyapunov`` = ``1/2 int (p - p_*)^2 / p_*`` (1 /
     length^2); ``mass`` = ``int p`` (1); ``trace_P``, ``trace_Q`` (density filter, 1 /
     length^2) and ``trace_P_grad``, ``trace_Q_grad`` (gradient filter, 1 / length^4),
-    None without filters. ``p`` is the plant's mean-field density.
+    None without filters. ``p`` is the plant's mean-field density. On a domain with
+    obstacles (``target.free``) ``G`` is free space's gradient (closed faces reflect,
+    :meth:`harness.domains.base.FreeSpace.gradient`) and the Lyapunov function sums
+    over the free cells (``p_*`` is 0 on the blocked ones).
     """
     est = rec.estimate
     p = rec.p_true
+    free = target.free
+    gradient = grid.gradient if free is None else free.gradient
     return {
         "t": rec.t,
         "phi_l2": grid.l2(p - target.p),
         "phat_target_l2": grid.l2(est.p_hat - target.p),
         "eps_l2": grid.l2(est.p_hat - p),
-        "eps_g_l2": grid.l2(est.q_hat - grid.gradient(p)),
+        "eps_g_l2": grid.l2(est.q_hat - gradient(p)),
         "kde_l2": None if rec.measurement is None else grid.l2(rec.measurement.p - p),
-        "lyapunov": lyapunov(grid, p, target.p),
+        "lyapunov": lyapunov(grid, p, target.p, free),
         "mass": grid.integrate(p),
         "trace_P": est.trace_P,
         "trace_Q": est.trace_Q,
@@ -121,7 +126,7 @@ class FieldMetrics:
 
     def initialize(self, run: RunContext) -> None:
         """``poincare_lambda`` and ``rate_exact`` into the theory record."""
-        lam = poincare_constant(self.grid, self.target.p)
+        lam = poincare_constant(self.grid, self.target.p, self.target.free)
         run.theory["poincare_lambda"] = repr(lam)
         law = law_record(self.control)
         if "alpha" in law:

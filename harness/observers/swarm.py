@@ -13,7 +13,19 @@ and split the error at the agent level into estimation, finite-N and control par
 
 (``swarm_l2 <= limit_swarm_l2 + limit_target_l2``), with ``mu_N`` the robots'
 empirical measure and ``K_h`` the KDE's kernel with its wall images; and ``swarm_w2``,
-an optimal-transport distance between the robots and ``p_*`` (length). The finite-N
+an optimal-transport distance between the robots and ``p_*`` (length).
+
+On a domain with obstacles (``target.free``, :class:`harness.domains.base.FreeSpace`)
+``p_*`` is the target on free space (0 on blocked cells, unit mass on free ones): the
+KDE and the smoother are built on free space (``free=target.free``), ``K_h p_*`` is the
+noise-free KDE of the target's cell values there (no closed form on free space), the
+floors draw robots from ``p_*`` on free space
+(:class:`harness.observers.swarm_metrics.FreeSampler`), ``swarm_w2``'s target measure is
+``p_*`` on free space with the Euclidean ground cost
+(:func:`harness.observers.swarm_metrics.free_target_measure`), and the observer adds
+:func:`domain_keys`: ``component_fraction_gap`` and ``component_fraction_<c>``, the
+robots' fraction in each connected component of free space
+(:class:`harness.observers.swarm_metrics.Components`). The finite-N
 floor of ``swarm_l2`` and ``swarm_w2`` (N robots drawn independently from ``p_*``) is
 computed once per content (:meth:`SwarmTruth.floors`, reused across runs by
 :mod:`harness.observers.floor_cache`) and logged in the ``theory`` record.
@@ -33,21 +45,30 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from contextlib import AbstractContextManager, nullcontext
+from typing import Any
 
 import numpy as np
 
+from harness.domains.base import FreeSpace
 from harness.estimators.kde import KDE
 from harness.estimators.smoothing import Smoother, smoothed_target
 from harness.grid import Grid
 from harness.observers import floor_cache, swarm_metrics
 from harness.observers.base import Cadence, RunContext, Status
 from harness.observers.floor_cache import FloorCache
-from harness.observers.swarm_metrics import TargetMeasure, swarm_w2, w2_method
+from harness.observers.swarm_metrics import (
+    Components,
+    FreeSampler,
+    TargetMeasure,
+    free_target_measure,
+    swarm_w2,
+    w2_method,
+)
 from harness.parameters import integer, require
 from harness.plants.limit import Limit
 from harness.protocols import Plant
 from harness.records import StepRecord
-from harness.targets.densities import Target
+from harness.targets.densities import Density, Target
 from harness.targets.moving import TargetPath
 
 SWARM_KEYS = (
@@ -64,6 +85,29 @@ SWARM_KEYS = (
 ON_POSITIONS = ("swarm_l2", "est_swarm_l2", "limit_swarm_l2", "limit_target_l2")
 """The swarm metrics computed every ``every`` steps (``swarm_w2`` every ``w2_every`` of
 those), from the robots' positions (:class:`SwarmTruth`)."""
+
+GAP_KEY = "component_fraction_gap"
+"""``max_c |robots' fraction in component c - p_*'s mass there|`` (dimensionless), on a
+domain with obstacles (:class:`harness.observers.swarm_metrics.Components`)."""
+
+
+def domain_keys(free: FreeSpace | None) -> tuple[str, ...]:
+    """The metrics a domain with obstacles adds to every ``/metrics`` message, after
+    the others: :data:`GAP_KEY` and ``component_fraction_<c>`` for each connected
+    component ``c = 0, 1, ...`` of free space (the robots' fraction there,
+    dimensionless); none on the plain square (``free`` None).
+    """
+    if free is None:
+        return ()
+    return (GAP_KEY, *(f"component_fraction_{c}" for c in range(free.n_components)))
+
+
+def on_free(free: FreeSpace | None) -> dict[str, Any]:
+    """The keyword that builds a KDE or a smoother on free space: ``{"free": free}`` on a
+    domain with obstacles, nothing on the plain square (whose KDE is built exactly as
+    without domains).
+    """
+    return {} if free is None else {"free": free}
 
 
 class SwarmTruth:
@@ -147,11 +191,16 @@ class SwarmTruth:
         )
         self.cache = FloorCache(floor_cache) if floor_cache else None
         self.run: RunContext | None = None
-        self.kde = KDE(grid, bandwidth, mirror=mirror, method=method)
-        self.smoother = Smoother(grid, bandwidth, mirror)
+        self.free = target.free
+        self.kde = KDE(grid, bandwidth, mirror=mirror, method=method, **on_free(self.free))
+        self.smoother = Smoother(grid, bandwidth, mirror, **on_free(self.free))
         self.bandwidth, self.mirror = bandwidth, mirror
-        self.smoothed_target = smoothed_target(target, bandwidth, mirror).p
         self.smoothed_target_cells = self.smoother(target.p)[0]
+        if self.free is None:
+            self.smoothed_target = smoothed_target(target, bandwidth, mirror).p
+        else:  # no closed form on free space: the noise-free KDE of the cell values
+            self.smoothed_target = self.smoothed_target_cells
+        self.components = None if self.free is None else Components(target.p, self.free)
         self._measures: dict[int, TargetMeasure] = {}
         self._at: tuple[float, np.ndarray, np.ndarray | None] | None = None
         # POT and the scipy.stats it loads (about a second) are loaded where the run is
@@ -168,7 +217,8 @@ class SwarmTruth:
         if not self.has_robots:
             return ("phat_smoothed_target_l2",)
         against_limit = ("limit_swarm_l2", "limit_target_l2")
-        return tuple(k for k in SWARM_KEYS if self.has_limit or k not in against_limit)
+        keys = tuple(k for k in SWARM_KEYS if self.has_limit or k not in against_limit)
+        return keys + domain_keys(self.free)
 
     @property
     def at_cadence(self) -> dict[str, str]:
@@ -177,7 +227,7 @@ class SwarmTruth:
         ``phat_smoothed_target_l2``; else, with ``w2_every`` above 1, ``swarm_w2``.
         """
         if self.every > 1:
-            return dict.fromkeys((*ON_POSITIONS, "swarm_w2"), "every")
+            return dict.fromkeys((*ON_POSITIONS, "swarm_w2", *domain_keys(self.free)), "every")
         return {"swarm_w2": "w2_every"} if self.w2_every > 1 else {}
 
     def smoothed_at(self, t: float, cells: bool) -> tuple[np.ndarray, np.ndarray | None]:
@@ -196,7 +246,7 @@ class SwarmTruth:
         """The swarm metrics of ``rec`` (all None without robots or off their steps), and
         ``phat_smoothed_target_l2`` = ``||p_hat - K_h p_*||`` at every step.
         """
-        out: dict[str, float | None] = dict.fromkeys(SWARM_KEYS)
+        out: dict[str, float | None] = dict.fromkeys(SWARM_KEYS + domain_keys(self.free))
         on_step = rec.positions is not None and self.cadence.due(rec.step)
         smoothed, smoothed_cells = self.smoothed_at(rec.t, on_step and self.has_limit)
         out["phat_smoothed_target_l2"] = self.grid.l2(rec.estimate.p_hat - smoothed)
@@ -211,6 +261,11 @@ class SwarmTruth:
             smooth_limit = self.smoother(rec.p_true)[0]
             out["limit_swarm_l2"] = g.l2(smooth_swarm - smooth_limit)
             out["limit_target_l2"] = g.l2(smooth_limit - smoothed_cells)
+        if self.components is not None:
+            fractions = self.components.fractions(rec.positions)
+            out[GAP_KEY] = self.components.gap(fractions)
+            for c, value in enumerate(fractions):
+                out[f"component_fraction_{c}"] = float(value)
         if self.w2_cadence.due(rec.step):
             n = rec.positions.shape[1]
             measure = self.measure(n) if not self.path.moves else self.measure_at(n, rec.t)
@@ -247,7 +302,12 @@ class SwarmTruth:
         """
         refine = MEASURE_REFINE[w2_method(n_robots)]
         if refine not in self._measures:
-            self._measures[refine] = _target_measure(self.target, measure_grid(self.grid), refine)
+            on = measure_grid(self.grid)
+            self._measures[refine] = (
+                _target_measure(self.target, on, refine)
+                if self.free is None
+                else free_target_measure(self.target.p, self.free, on, refine)
+            )
         return self._measures[refine]
 
     def floor_seed(self) -> list[int]:
@@ -275,9 +335,10 @@ class SwarmTruth:
     def floor_inputs(self, n_robots: int) -> dict[str, object] | None:
         """Everything the floors for ``n_robots`` depend on
         (:func:`harness.observers.floor_cache.floor_inputs`); None for a target without a faithful
-        content description, or without a continuous density (no floors).
+        content description, or without a continuous density (no floors); on free
+        space the floors sample the target's cell values, so the density is not needed.
         """
-        if self.target.density is None:
+        if self.target.density is None and self.free is None:
             return None
         return floor_cache.floor_inputs(
             target=self.target,
@@ -304,7 +365,7 @@ class SwarmTruth:
         density to sample. ``window`` is entered around each draw (the run's stop
         window, :attr:`harness.observers.base.RunContext.window`).
         """
-        if self.target.density is None:
+        if self.target.density is None and self.free is None:
             return {}
         inputs = self.floor_inputs(n_robots)
 
@@ -332,10 +393,14 @@ class SwarmTruth:
         no continuous density to sample.
         """
         density = self.target.density
-        if density is None:
+        if self.free is not None:
+            sampler: Density | FreeSampler = FreeSampler(self.target.p, self.free)
+        elif density is None:
             return {}
+        else:
+            sampler = density
         bands = swarm_metrics.floors(
-            density,
+            sampler,
             self.grid,
             self.kde,
             self.smoothed_target,

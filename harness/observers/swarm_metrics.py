@@ -56,6 +56,7 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from harness.domains.base import FreeSpace
 from harness.estimators.kde import KDE
 from harness.estimators.smoothing import cell_masses
 from harness.grid import Grid
@@ -149,6 +150,17 @@ def swarm_w2(
 
     The two are different distances: compare values (and their floors, which use the
     same method) only within one method.
+
+    On a domain with obstacles the ground cost stays the squared *Euclidean* distance,
+    not the geodesic one: the target measure is ``p_*`` on free space
+    (:func:`free_target_measure`) and the robots are in free space, but a transport
+    plan may move mass through an obstacle at the straight-line price. So ``swarm_w2``
+    is a distance between the two measures on the plane (0 exactly when the robots
+    match the target's atoms) that under-prices a swarm on the wrong side of a wall: a
+    robot in the wrong room costs its straight-line distance to the target's mass, not
+    the way round through the door. The component metric
+    (:class:`Components`) catches mass in the wrong component, which no Euclidean
+    cost can.
 
     Args:
         positions: Robots, shape ``(2, N)`` (length).
@@ -275,7 +287,7 @@ def _band(values: np.ndarray) -> Band:
 
 
 def floors(
-    density: Density,
+    density: Density | FreeSampler,
     grid: Grid,
     kde: KDE,
     smoothed_target: np.ndarray,
@@ -290,9 +302,10 @@ def floors(
     """Finite-N floors: ``swarm_l2`` and ``swarm_w2`` of N robots drawn from ``p_*``.
 
     Each of ``draws`` Monte-Carlo draws places ``n_robots`` independent samples of
-    ``density`` (``density.sample`` with ``rng``) and evaluates both distances exactly
-    as for the swarm (same KDE, same target measure, same transport method for this
-    N). A swarm distributed as ``p_*`` lands inside ``[lo, hi]`` with probability 0.95.
+    ``density`` (``density.sample`` with ``rng``; on free space :class:`FreeSampler`)
+    and evaluates both distances exactly as for the swarm (same KDE, same target
+    measure, same transport method for this N). A swarm distributed as ``p_*`` lands
+    inside ``[lo, hi]`` with probability 0.95.
     For large N, ``E swarm_l2^2 ~ int k K_h * p_* = 1 / (4 pi N h^2)`` (notes section 3).
 
     Args:
@@ -321,3 +334,157 @@ def floors(
                 l2[i] = swarm_l2(x, kde, smoothed_target, grid)
                 w[i] = swarm_w2(x, target, w2, n_projections)
     return {"swarm_l2": _band(l2), "swarm_w2": _band(w)}
+
+
+# --- free space (a domain with obstacles) ---------------------------------------------
+
+SAMPLE_TRIES = 64
+"""Rounds of rejection against the robots' raster when drawing a robot in a free cell
+(:class:`FreeSampler`); one still blocked after them is put at its cell's centre."""
+
+
+def _raster_blocked(x: np.ndarray, y: np.ndarray, free: FreeSpace) -> np.ndarray:
+    """Whether each point ``(x, y)`` lies in a blocked square of the robots' raster
+    (``free.raster``: row along y, side ``L / r`` from the grid's origin).
+    """
+    g = free.grid
+    r = free.raster.shape[0]
+    col = np.clip(((x - g.x0) / (g.x1 - g.x0) * r).astype(np.intp), 0, r - 1)
+    row = np.clip(((y - g.y0) / (g.y1 - g.y0) * r).astype(np.intp), 0, r - 1)
+    return free.raster[row, col].astype(bool)
+
+
+@dataclass(frozen=True)
+class FreeSampler:
+    """``p_*`` on free space as the law of one robot, for the finite-N floors.
+
+    A robot falls in free cell ``c`` with probability ``p_*(c) dx dy`` (the target's
+    cell values, 0 on blocked cells and of unit mass on free ones,
+    :meth:`harness.domains.base.FreeSpace.restrict`) and is uniform on the part of the
+    cell that the robots' raster marks free (rejection, :data:`SAMPLE_TRIES` rounds; a
+    robot still blocked after them sits at the cell's centre, which is free space by the
+    definition of a free cell). So no robot is drawn inside an obstacle, and the cell
+    masses of the law are exactly the target's.
+
+    Attributes:
+        p: The target's cell values ``(ny, nx)`` (1 / length^2).
+        free: Free space.
+    """
+
+    p: np.ndarray
+    free: FreeSpace
+
+    def sample(self, n: int, grid: Grid, rng: np.random.Generator) -> np.ndarray:
+        """``n`` positions, shape ``(2, n)`` (row 0: x, row 1: y)."""
+        masses = np.where(self.free.cells, self.p, 0.0).ravel() * grid.cell_area
+        cells = rng.choice(masses.size, size=n, p=masses / masses.sum())
+        row, col = np.divmod(cells, grid.nx)
+        x = np.empty(n)
+        y = np.empty(n)
+        todo = np.arange(n)
+        for _ in range(SAMPLE_TRIES):
+            u = rng.random((2, todo.size))
+            x[todo] = grid.x0 + (col[todo] + u[0]) * grid.dx
+            y[todo] = grid.y0 + (row[todo] + u[1]) * grid.dy
+            todo = todo[_raster_blocked(x[todo], y[todo], self.free)]
+            if todo.size == 0:
+                break
+        x[todo] = grid.x[col[todo]]
+        y[todo] = grid.y[row[todo]]
+        return np.vstack([x, y])
+
+
+def free_target_measure(
+    p: np.ndarray, free: FreeSpace, grid: Grid, refine: int = 1
+) -> TargetMeasure:
+    """``p_*`` on free space as a discrete measure for transport.
+
+    Each free cell of the simulation grid (``free.grid``) carries its mass ``p_*(c) dx
+    dy``, split evenly over the centres of its ``refine x refine`` sub-squares that the
+    robots' raster marks free (all of them when none is; with ``refine = 1`` the cell's
+    centre, free by the definition of a free cell): the law :class:`FreeSampler` draws
+    from, with the mass of each sub-square moved to its centre. When ``grid`` (the
+    measure's grid, :func:`harness.observers.swarm.measure_grid`) is coarser than the
+    simulation grid refined ``refine`` times, the atoms are merged per cell of ``grid``
+    refined ``refine`` times, at their mass-weighted centroid (inside the convex hull of
+    free points, where a cell's centre could lie in an obstacle).
+    """
+    fine = free.grid
+    masses = np.where(free.cells, p, 0.0) * fine.cell_area
+    row, col = np.nonzero(free.cells & (masses > 0))
+    mass = masses[row, col]
+    offsets = (np.arange(refine) + 0.5) / refine
+    ox, oy = np.meshgrid(offsets, offsets, indexing="xy")
+    x = fine.x0 + (col[:, None] + ox.ravel()[None, :]) * fine.dx  # (cells, refine^2)
+    y = fine.y0 + (row[:, None] + oy.ravel()[None, :]) * fine.dy
+    if refine > 1:
+        open_ = ~_raster_blocked(x, y, free)
+        open_[~open_.any(axis=1)] = True  # a cell whose sub-centres are all blocked keeps them
+    else:
+        open_ = np.ones(x.shape, dtype=bool)
+    share = open_ / open_.sum(axis=1, keepdims=True)
+    w = (mass[:, None] * share)[open_]
+    px, py = x[open_], y[open_]
+    nx, ny = grid.nx * refine, grid.ny * refine
+    if nx < fine.nx * refine or ny < fine.ny * refine:
+        bx = np.minimum(((px - grid.x0) / (grid.x1 - grid.x0) * nx).astype(np.intp), nx - 1)
+        by = np.minimum(((py - grid.y0) / (grid.y1 - grid.y0) * ny).astype(np.intp), ny - 1)
+        key = by * nx + bx
+        total = np.bincount(key, w, nx * ny)
+        keep = total > 0
+        cx = np.bincount(key, w * px, nx * ny)[keep] / total[keep]
+        cy = np.bincount(key, w * py, nx * ny)[keep] / total[keep]
+        px, py, w = cx, cy, total[keep]
+    return TargetMeasure(np.column_stack([px, py]), w / w.sum())
+
+
+class Components:
+    """The robots in each connected component of free space against the target's mass
+    there.
+
+    A robot belongs to the component of the free cell that holds it; a robot in a
+    blocked cell (a cell less than half free still has free space the robots' raster
+    lets them reach) to the component of the free cell whose centre is nearest to it.
+    ``gap`` is ``max_c |robots' fraction in c - p_*'s mass in c|`` (dimensionless, in
+    ``[0, 1]``): 0 when every component holds its share of the swarm, 1 when the whole
+    swarm sits in a component the target gives no mass.
+
+    Args:
+        p: The target's cell values (1 / length^2; 0 on blocked cells).
+        free: Free space.
+    """
+
+    def __init__(self, p: np.ndarray, free: FreeSpace) -> None:
+        from scipy.spatial import cKDTree
+
+        self.free = free
+        g = free.grid
+        labels = free.labels
+        self.n = free.n_components
+        total = np.bincount(labels[free.cells], np.asarray(p)[free.cells] * g.cell_area, self.n)
+        self.masses = total / total.sum()
+        rows, cols = np.nonzero(free.cells)
+        self._labels = labels[rows, cols]
+        self._tree = cKDTree(np.column_stack([g.x[cols], g.y[rows]]))
+
+    def of(self, positions: np.ndarray) -> np.ndarray:
+        """The component of each robot, shape ``(N,)``."""
+        g = self.free.grid
+        x, y = np.asarray(positions[0], dtype=float), np.asarray(positions[1], dtype=float)
+        col = np.clip(((x - g.x0) / g.dx).astype(np.intp), 0, g.nx - 1)
+        row = np.clip(((y - g.y0) / g.dy).astype(np.intp), 0, g.ny - 1)
+        out = self.free.labels[row, col].copy()
+        lost = np.flatnonzero(out < 0)
+        if lost.size:
+            _, nearest = self._tree.query(np.column_stack([x[lost], y[lost]]))
+            out[lost] = self._labels[nearest]
+        return out
+
+    def fractions(self, positions: np.ndarray) -> np.ndarray:
+        """The fraction of the robots in each component, shape ``(n_components,)``."""
+        n = positions.shape[1]
+        return np.bincount(self.of(positions), minlength=self.n)[: self.n] / n
+
+    def gap(self, fractions: np.ndarray) -> float:
+        """``max_c |fractions[c] - masses[c]|`` (dimensionless)."""
+        return float(np.max(np.abs(np.asarray(fractions) - self.masses)))
