@@ -37,13 +37,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import zstandard
 from foxglove_schemas_protobuf.Grid_pb2 import Grid as GridMsg
-from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.records import Channel, Chunk, Footer, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import InvalidMagic, StreamReader, breakup_chunk
 
+from analysis.domain import DomainShapes, decode_mask, decode_obstacles
 from analysis.limits import ROBOT_TOPICS, Limits
 from analysis.output import atomic_path
 
@@ -121,37 +121,6 @@ class FieldSeries:
         """The message nearest to time ``t``: ``(time, values (c, ny, nx))``."""
         i = int(np.argmin(np.abs(self.t - t)))
         return float(self.t[i]), self.values[i]
-
-
-@dataclass
-class DomainShapes:
-    """The domain of a run with obstacles, from its log.
-
-    Attributes:
-        free: ``(ny, nx)`` booleans, the free cells of the control grid
-            (``/domain/mask``), or None when the log has no mask.
-        origin: The grid's origin ``(x0, y0)`` (length).
-        cell_size: ``(dx, dy)`` (length).
-        rectangles: ``(K, 4)`` obstacles ``x0, y0, x1, y1`` (length), the cubes of
-            ``/domain/obstacles`` seen from above.
-    """
-
-    free: np.ndarray | None = None
-    origin: tuple[float, float] = (0.0, 0.0)
-    cell_size: tuple[float, float] = (0.0, 0.0)
-    rectangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-
-    def extent(self) -> tuple[float, float, float, float]:
-        """``(x0, x1, y0, y1)`` of the mask, for ``imshow``."""
-        if self.free is None:
-            raise ValueError("the log has no /domain/mask")
-        ny, nx = self.free.shape
-        x0, y0 = self.origin
-        return (x0, x0 + nx * self.cell_size[0], y0, y0 + ny * self.cell_size[1])
-
-
-DOMAIN_TOPICS = ("/domain/mask", "/domain/obstacles")
-"""The topics of a run with obstacles (log contract, ``harness/observers/log.py``)."""
 
 
 @dataclass
@@ -277,47 +246,6 @@ def _decode_grid(
         (msg.pose.position.x, msg.pose.position.y),
         (msg.cell_size.x, msg.cell_size.y),
     )
-
-
-def _decode_mask(msg) -> dict[str, object]:
-    """``/domain/mask``: its one uint8 field as booleans ``(ny, nx)``, with the grid's
-    origin and cell size.
-
-    Raises:
-        ValueError: when the message is not one uint8 field on a whole number of rows.
-    """
-    uint8 = PackedElementField.UINT8
-    if len(msg.fields) != 1 or msg.fields[0].type != uint8 or msg.cell_stride != 1:
-        raise ValueError("a domain mask holds one uint8 field")
-    cols = msg.column_count
-    raw = np.frombuffer(msg.data, dtype=np.uint8)
-    if cols < 1 or raw.size == 0 or raw.size % cols or msg.row_stride != cols:
-        raise ValueError("a domain mask of whole rows")
-    return {
-        "free": raw.reshape(-1, cols) != 0,
-        "origin": (msg.pose.position.x, msg.pose.position.y),
-        "cell_size": (msg.cell_size.x, msg.cell_size.y),
-    }
-
-
-def _decode_obstacles(msg) -> np.ndarray:
-    """``/domain/obstacles``: the cubes of every entity as rectangles ``(K, 4)``
-    (``x0, y0, x1, y1``, length), seen from above (an unrotated cube's footprint).
-    """
-    boxes = [
-        (
-            c.pose.position.x - c.size.x / 2,
-            c.pose.position.y - c.size.y / 2,
-            c.pose.position.x + c.size.x / 2,
-            c.pose.position.y + c.size.y / 2,
-        )
-        for entity in msg.entities
-        for c in entity.cubes
-    ]
-    out = np.array(boxes, dtype=float).reshape(-1, 4)
-    if not np.isfinite(out).all():
-        raise ValueError("obstacles with coordinates that are not finite numbers")
-    return out
 
 
 def field_dataarray(series: FieldSeries, topic: str = "") -> xr.DataArray:
@@ -644,9 +572,9 @@ def _take(
         qw = np.array([p.orientation.w for p in msg.poses])
         poses.append((t, np.column_stack([xy, 2.0 * np.arctan2(qz, qw)])))
     elif channel.topic == "/domain/mask" and name == "foxglove.Grid":
-        domain.update(_decode_mask(GridMsg.FromString(record.data)))
+        domain.update(decode_mask(GridMsg.FromString(record.data)))
     elif channel.topic == "/domain/obstacles" and name == "foxglove.SceneUpdate":
-        domain["rectangles"] = _decode_obstacles(SceneUpdate.FromString(record.data))
+        domain["rectangles"] = decode_obstacles(SceneUpdate.FromString(record.data))
     else:
         return False
     return True

@@ -172,7 +172,9 @@ def png_problem(data: bytes) -> str:
     """
     if not data.startswith(PNG_SIGNATURE):
         return "no PNG signature"
-    at, header, stream, kinds = len(PNG_SIGNATURE), b"", [], []
+    at, header = len(PNG_SIGNATURE), b""
+    stream: list[bytes] = []
+    kinds: list[bytes] = []
     while True:
         if at + 12 > len(data):
             return f"cut short at byte {at} (no IEND chunk)"

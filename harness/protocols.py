@@ -221,6 +221,18 @@ def carries(estimator: Estimator) -> frozenset[str]:
     return frozenset(str(c) for c in getattr(estimator, "carries", None) or ())
 
 
+def carries_traces(estimator: Estimator) -> bool:
+    """Whether every estimate of ``estimator`` holds the filters' covariance traces."""
+    return CARRIED[0] in carries(estimator)
+
+
+def carries_reference(estimator: Estimator) -> bool:
+    """Whether every estimate of ``estimator`` holds, per robot, the centralised
+    reference's estimate (so each command has its ``reference``).
+    """
+    return CARRIED[1] in carries(estimator)
+
+
 def on_free_space(part: object) -> bool:
     """Whether ``part`` honours a domain with obstacles (its optional ``free_space``):
     it reads free space from the model or the target it is built with

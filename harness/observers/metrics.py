@@ -26,7 +26,7 @@ from harness.grid import Grid
 from harness.observers.base import RunContext, Status
 from harness.observers.theory import lyapunov, poincare_constant
 from harness.parameters import number
-from harness.protocols import Control, Estimator, carries, law_record
+from harness.protocols import Control, Estimator, carries_traces, law_record
 from harness.records import StepRecord
 from harness.targets.densities import Target
 from harness.targets.moving import TargetPath
@@ -118,7 +118,7 @@ class FieldMetrics:
         self.gives: tuple[str, ...] = FIELD_KEYS
         if estimator is not None:
             absent = set() if estimator.uses_kde else {"kde_l2"}
-            if "traces" not in carries(estimator):
+            if not carries_traces(estimator):
                 absent |= set(TRACE_KEYS)
             self.gives = tuple(k for k in FIELD_KEYS if k not in absent)
         self.sigma = number("sigma", sigma, 0.0)

@@ -43,7 +43,7 @@ import numpy as np
 from harness.compiled.agents import speed_sums
 from harness.grid import Grid
 from harness.observers.base import RunContext, Status
-from harness.protocols import REPORTED, Estimator, Plant, carries, reported
+from harness.protocols import REPORTED, Estimator, Plant, carries_reference, reported
 from harness.records import StepRecord
 from harness.velocity import interpolate
 
@@ -128,7 +128,7 @@ class Motion:
     def __init__(self, grid: Grid, plant: Plant, estimator: Estimator | None = None) -> None:
         self.grid = grid
         self.plant = plant
-        reference = estimator is not None and "reference" in carries(estimator)
+        reference = estimator is not None and carries_reference(estimator)
         self.gives: tuple[str, ...] = (*MOTION_KEYS, *((DISAGREEMENT_KEY,) if reference else ()))
 
     def initialize(self, run: RunContext) -> None:
