@@ -22,12 +22,16 @@ with ``dx / r <= h / cells_per_bandwidth`` (:func:`refinement`; 3 at the paper's
 
 * binning: each robot splits its mass bilinearly over the four nearest subcell centres
   (:func:`bin_targets`; a face that is closed sends the share back, so no mass crosses
-  a wall): at most ``(s / h)^2 / 8`` of a kernel peak, as the square's binning;
+  a wall): at most ``(s^2 / 8) (|K_xx| + |K_yy|) <= (s / h)^2 / 4`` of a kernel peak;
 * the grid's heat kernel: a Neumann cosine mode ``kappa`` is damped by ``exp(-t 4
-  sin^2(kappa s / 2) / s^2)`` instead of ``exp(-t kappa^2)``; the difference is at most
-  ``4 e^-2 / 12 s^2 / t = 0.090 (s / h)^2`` of the mode's amplitude (at ``t kappa^2 = 2``).
+  sin^2(kappa s / 2) / s^2)`` per axis instead of ``exp(-t kappa^2)``; the difference is
+  ``4 e^-2 / 12 s^2 / t = 0.090 (s / h)^2`` of the mode's amplitude per axis to leading
+  order in ``s^2 / t`` (at ``t kappa^2 = 2``; 2 % more at ``s = h / 3``), twice that in 2-D.
 
-At ``s = h / 3`` both are about 1 % of a kernel peak.
+These are worst cases; on the open square at ``s = h / 3`` the KDE of 4000 uniform robots
+is within 0.13 % (L2) of the Gaussian one with wall images, 2 % for the gradient (read by
+a central difference over ``2 s``, error ``s^2 / 6 |p'''|``), and the error falls like
+``s^2`` (tests/test_kde_free_space.py).
 
 The exponential. ``A`` is symmetric (with no drift every open face has rate ``1 / dx^2``
 both ways) and negative semi-definite with spectrum in ``[-Lambda, 0]``, ``Lambda = 2
