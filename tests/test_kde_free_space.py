@@ -9,11 +9,10 @@ import pytest
 import scipy.fft as sfft
 import scipy.linalg as sla
 
+from harness.compiled.binning import free_binning
 from harness.domains.base import FreeSpace, components
 from harness.domains.obstacles import Obstacles
 from harness.domains.rooms import Rooms
-from harness.domains.square import Square
-from harness.compiled.binning import free_binning
 from harness.estimators.diffusion import (
     FreeKernel,
     HeatKernel,
@@ -69,7 +68,9 @@ def test_the_free_space_kde_has_no_mass_in_obstacles_and_unit_mass_on_free_space
     assert grid.integrate(p) == pytest.approx(1.0, abs=1e-8)
     # the diffused fine field itself carries the robots' mass to round-off
     k = kde.diffusion
-    w = free_binning(positions, 0.0, 1.0, 0.0, 1.0, k.fine.grid.nx, k.fine.grid.ny, k.targets, k.home)
+    w = free_binning(
+        positions, 0.0, 1.0, 0.0, 1.0, k.fine.grid.nx, k.fine.grid.ny, k.targets, k.home
+    )
     assert k.heat(w.ravel()).sum() == pytest.approx(1.0, abs=1e-13)
 
 
@@ -158,6 +159,7 @@ def test_the_heat_kernel_on_the_open_square_is_the_neumann_cosine_transfer(rng):
     exact = sfft.idctn(sfft.dctn(f, norm="ortho") * transfer, norm="ortho")
     np.testing.assert_allclose(got, exact, atol=1e-12)
 
+
 @pytest.mark.parametrize("cells_per_h", [3, 5, 10])
 def test_the_grid_heat_kernel_departs_from_the_gaussian_by_the_stated_leading_term(cells_per_h):
     # per axis, max_kappa |exp(-t 4 sin^2(kappa s / 2) / s^2) - exp(-t kappa^2)| is
@@ -237,7 +239,10 @@ def test_the_kde_noise_falls_like_one_over_n(name, rng):
 
     def mse(n):
         return np.mean(
-            [grid.l2(kernel.kde(sample_cells(free, p, n, rng))[0] - expected) ** 2 for _ in range(30)]
+            [
+                grid.l2(kernel.kde(sample_cells(free, p, n, rng))[0] - expected) ** 2
+                for _ in range(30)
+            ]
         )
 
     small, large = mse(1000), mse(16000)
@@ -255,7 +260,11 @@ def test_the_smoothing_bias_vanishes_as_h_shrinks(name):
     # docstring). Measured on a fine grid (cells below h / 3 for every h here).
     grid = Grid.square(120)
     free = DOMAINS[name].resolve(grid)
-    target = Target.from_density(grid, GaussianMixture(means=((0.3, 0.35), (0.7, 0.6)), stds=(0.1, 0.08), weights=(0.6, 0.4)), free)
+    target = Target.from_density(
+        grid,
+        GaussianMixture(means=((0.3, 0.35), (0.7, 0.6)), stds=(0.1, 0.08), weights=(0.6, 0.4)),
+        free,
+    )
     errors = []
     hs = [0.08, 0.04, 0.02]
     for h in hs:
@@ -270,7 +279,11 @@ def test_the_smoothing_bias_vanishes_as_h_shrinks(name):
 def test_the_smoothed_target_is_the_free_space_kernel_of_the_target(name):
     grid = Grid.square(30)
     free = DOMAINS[name].resolve(grid)
-    target = Target.from_density(grid, GaussianMixture(means=((0.3, 0.35), (0.7, 0.6)), stds=(0.1, 0.08), weights=(0.6, 0.4)), free)
+    target = Target.from_density(
+        grid,
+        GaussianMixture(means=((0.3, 0.35), (0.7, 0.6)), stds=(0.1, 0.08), weights=(0.6, 0.4)),
+        free,
+    )
     smooth = smoothed_target(target, H)
     assert smooth.free is free
     np.testing.assert_allclose(smooth.p, free.restrict(Smoother(grid, H, free=free)(target.p)[0]))

@@ -118,10 +118,10 @@ def free_binning(
 ) -> np.ndarray:  # pragma: no cover - compiled
     """Bilinear shares of each robot (``1/N``) on the cells of a grid of ``nx x ny``
     cells on ``[x0, x1] x [y0, y1]`` with free space: the four shares of a robot in cell
-    ``c``, quadrant ``q``, go to ``targets[c, q]`` (:func:`harness.estimators.diffusion.bin_targets`),
-    the whole ``1/N`` to ``home[c]`` when ``c`` is blocked (``home[c] != c``). Robots in
-    order, serial; :func:`harness.estimators.diffusion.bin_reference` is the numpy
-    statement. Returns ``(ny, nx)`` weights summing to 1.
+    ``c``, quadrant ``q``, go to ``targets[c, q]``
+    (:func:`harness.estimators.diffusion.bin_targets`), the whole ``1/N`` to ``home[c]``
+    when ``c`` is blocked (``home[c] != c``). Robots in order, serial;
+    :func:`harness.estimators.diffusion.bin_reference` is the numpy statement. Returns ``(ny, nx)`` weights summing to 1.
     """
     n = pos.shape[1]
     inv_n = 1.0 / n

@@ -71,7 +71,9 @@ HEAT_TOLERANCE = 1e-13
 """Tail of the Chebyshev coefficients :class:`HeatKernel` drops."""
 
 
-def refinement(grid: Grid, bandwidth: float, cells_per_bandwidth: float = CELLS_PER_BANDWIDTH) -> int:
+def refinement(
+    grid: Grid, bandwidth: float, cells_per_bandwidth: float = CELLS_PER_BANDWIDTH
+) -> int:
     """The least ``r >= 1`` with ``max(dx, dy) / r <= h / cells_per_bandwidth``."""
     if not (np.isfinite(bandwidth) and bandwidth > 0):
         raise ValueError(f"bandwidth must be > 0, got {bandwidth}")

@@ -67,8 +67,8 @@ from harness.estimators.diffusion import gradient_matrix
 from harness.estimators.kde import noise_constants
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.velocity import VelocityField
 from harness.parameters import number
+from harness.velocity import VelocityField
 
 
 @dataclass(frozen=True)
@@ -409,9 +409,9 @@ class FreeBand:
     the axes and fewer between them, a subset of its band (293 of its 329 modes at ``n =
     30``, ``kappa_c = 62.5``, 312 at ``n = 40``; a test checks the subset).
     On free space the cosine modes are not eigenvectors, and these are the modes a
-    diffusion smooths alike. Each component's constant (eigenvalue 0) is kept, so ``Pi`` conserves the mass
-    of every component; blocked cells are 0 in every mode, so ``Pi`` leaves no mass
-    there. The modes are computed once: a dense symmetric eigensolver up to
+    diffusion smooths alike. Each component's constant (eigenvalue 0) is kept, so ``Pi``
+    conserves the mass of every component; blocked cells are 0 in every mode, so ``Pi``
+    leaves no mass there. The modes are computed once: a dense symmetric eigensolver up to
     ``DENSE_MAX_CELLS`` free cells, else ARPACK in shift-invert mode (a sparse LU),
     asking for more modes until one above the cut is found.
 
