@@ -121,7 +121,8 @@ def free_binning(
     ``c``, quadrant ``q``, go to ``targets[c, q]``
     (:func:`harness.estimators.diffusion.bin_targets`), the whole ``1/N`` to ``home[c]``
     when ``c`` is blocked (``home[c] != c``). Robots in order, serial;
-    :func:`harness.estimators.diffusion.bin_reference` is the numpy statement. Returns ``(ny, nx)`` weights summing to 1.
+    :func:`harness.estimators.diffusion.bin_reference` is the numpy statement. Returns
+    ``(ny, nx)`` weights summing to 1.
     """
     n = pos.shape[1]
     inv_n = 1.0 / n
