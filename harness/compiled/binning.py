@@ -102,3 +102,49 @@ def linear_binning(
         _bin_range(pos, 0, n, out, x0, x1, y0, y1, bx, by, 1.0 / n)
         return out
     return linear_binning_chunked(pos, x0, x1, y0, y1, bx, by, chunk)
+
+
+@numba.njit(cache=True, nogil=True)
+def free_binning(
+    pos: np.ndarray,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+    nx: int,
+    ny: int,
+    targets: np.ndarray,
+    home: np.ndarray,
+) -> np.ndarray:  # pragma: no cover - compiled
+    """Bilinear shares of each robot (``1/N``) on the cells of a grid of ``nx x ny``
+    cells on ``[x0, x1] x [y0, y1]`` with free space: the four shares of a robot in cell
+    ``c``, quadrant ``q``, go to ``targets[c, q]``
+    (:func:`harness.estimators.diffusion.bin_targets`), the whole ``1/N`` to ``home[c]``
+    when ``c`` is blocked (``home[c] != c``). Robots in order, serial;
+    :func:`harness.estimators.diffusion.bin_reference` is the numpy statement. Returns
+    ``(ny, nx)`` weights summing to 1.
+    """
+    n = pos.shape[1]
+    inv_n = 1.0 / n
+    out = np.zeros(ny * nx)
+    sx = nx / (x1 - x0)
+    sy = ny / (y1 - y0)
+    for k in range(n):
+        tx = (pos[0, k] - x0) * sx
+        ty = (pos[1, k] - y0) * sy
+        ix = min(max(int(np.floor(tx)), 0), nx - 1)
+        iy = min(max(int(np.floor(ty)), 0), ny - 1)
+        c = iy * nx + ix
+        if home[c] != c:
+            out[home[c]] += inv_n
+            continue
+        ux = tx - ix - 0.5
+        uy = ty - iy - 0.5
+        fx = min(abs(ux), 0.5)
+        fy = min(abs(uy), 0.5)
+        q = (2 if uy >= 0 else 0) + (1 if ux >= 0 else 0)
+        out[targets[c, q, 0]] += (1.0 - fx) * (1.0 - fy) * inv_n
+        out[targets[c, q, 1]] += fx * (1.0 - fy) * inv_n
+        out[targets[c, q, 2]] += (1.0 - fx) * fy * inv_n
+        out[targets[c, q, 3]] += fx * fy * inv_n
+    return out.reshape(ny, nx)

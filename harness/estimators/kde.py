@@ -30,6 +30,13 @@ Two evaluation paths give the same estimator:
 
 ``method="auto"`` uses ``exact`` up to ``exact_max_robots`` robots.
 
+On free space (``free`` given, a domain with obstacles) the kernel is the heat kernel of
+the masked domain at time ``h^2 / 2`` instead of the Gaussian with wall images: the
+robots are binned on a finer grid's free cells and diffused with no flux through closed
+faces (:class:`harness.estimators.diffusion.FreeKernel`, whose docstring gives its
+errors); ``method`` and ``bin_factor`` do not apply there. With ``free`` None every path
+is the square's.
+
 Measurement noise (notes section 3). For independent samples of ``p`` the KDE
 fluctuates with variance ``Var[p_KDE] ~ k p`` and ``Var[d_i p_KDE] ~ k_g p``,
 
@@ -49,6 +56,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from harness.compiled.binning import linear_binning
+from harness.domains.base import FreeSpace
+from harness.estimators.diffusion import FreeKernel
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.records import Estimate, StepInput
@@ -155,6 +164,9 @@ class KDE:
         bin_factor: Refinement of the binning grid relative to ``grid`` (capped by the
             kernel, :func:`binning_nodes`).
         exact_max_robots: ``auto`` uses ``exact`` up to this many robots.
+        free: Free space of a domain with obstacles: the kernel is then diffusion on it
+            (:class:`~harness.estimators.diffusion.FreeKernel`, always reflecting:
+            ``mirror`` must be True); None for the square.
     """
 
     METHODS = ("auto", "exact", "binned")
@@ -165,6 +177,7 @@ class KDE:
     method: str = "auto"
     bin_factor: int = 4
     exact_max_robots: int = 512
+    free: FreeSpace | None = None
     bins: tuple[int, int] = field(init=False)
     _node_kernels: tuple[np.ndarray, ...] = field(init=False, repr=False)
     _work: dict[int, tuple[np.ndarray, ...]] = field(init=False, repr=False, default_factory=dict)
@@ -188,6 +201,13 @@ class KDE:
         ky, dky = kernel_1d(self._nodes_y, g.y, self.bandwidth, g.y0, g.y1, self.mirror)
         self._node_kernels = (kx, dkx, ky, dky)
         self._paths = {name: getattr(self, name) for name in self.METHODS}
+        self.diffusion: FreeKernel | None = None
+        if self.free is not None:
+            if self.free.grid != g:
+                raise ValueError("kde free space resolved on another grid")
+            if not self.mirror:
+                raise ValueError("kde mirror must be True on free space (its walls reflect)")
+            self.diffusion = FreeKernel(self.free, self.bandwidth)
 
     def __call__(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Estimate ``(p_KDE, grad p_KDE)`` from positions of shape ``(2, N)``.
@@ -199,6 +219,8 @@ class KDE:
         positions = np.asarray(positions, dtype=float)
         if positions.ndim != 2 or positions.shape[0] != 2 or positions.shape[1] < 1:
             raise ValueError(f"positions must have shape (2, N) with N >= 1, got {positions.shape}")
+        if self.diffusion is not None:
+            return self.diffusion.kde(positions)
         return self._paths[self.method](positions)
 
     def auto(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -275,9 +297,12 @@ class KDE:
 
 
 class KDEEstimator:
-    """``p_hat = p_KDE``, ``q_hat = grad p_KDE``: no filter (``estimator=kde``)."""
+    """``p_hat = p_KDE``, ``q_hat = grad p_KDE``: no filter (``estimator=kde``). On free
+    space the plant's KDE is the diffusion one (:class:`KDE` with ``free``).
+    """
 
     uses_kde = True
+    free_space = True
 
     def __init__(self, grid: Grid, model: FokkerPlanck) -> None:
         self.grid = grid

@@ -36,6 +36,15 @@ given as a function ``p(x, y)``; it agrees with the closed forms to ~1e-12.
 
 ``estimator=smoothed`` (:class:`SmoothedEstimator`) is the noise-free KDE of the plant's
 mean-field density as the estimate.
+
+On free space (``free`` given) ``K_h`` is the KDE's own kernel there, diffusion for time
+``h^2 / 2`` with no flux through closed faces (:class:`harness.estimators.diffusion.FreeKernel`):
+:class:`Smoother` and :func:`smoothed_target` apply the very operator whose expectation
+the free-space KDE of robots drawn from ``p`` (constant on each cell) has, ``E[KDE] = K_h
+p``. Its bias against ``p`` itself is that of the Neumann heat semigroup: ``O(h^2)``
+inside (``(h^2 / 2) Laplacian p``), ``O(h)`` within about ``h`` of a wall or an obstacle
+where ``p``'s normal derivative does not vanish (the kernel reflects there), so ``O(h^{3/2})``
+in L2; it vanishes as ``h -> 0``.
 """
 
 from __future__ import annotations
@@ -45,10 +54,12 @@ from collections.abc import Callable
 import numpy as np
 import scipy.fft as sfft
 
+from harness.domains.base import FreeSpace
+from harness.estimators.diffusion import FreeKernel
 from harness.estimators.kde import kernel_1d
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
-from harness.parameters import flag, number
+from harness.parameters import ParameterError, flag, number
 from harness.records import Estimate, StepInput
 from harness.targets.densities import Density, ExactCellMasses, ExactSmoothing, Target
 
@@ -89,10 +100,22 @@ class Smoother:
         grid: The grid.
         bandwidth: Kernel standard deviation ``h > 0`` (length).
         mirror: Wall images, as in the KDE.
+        free: Free space of a domain with obstacles: ``K_h`` is then the diffusion
+            kernel of :class:`~harness.estimators.diffusion.FreeKernel` (``mirror`` must
+            be True); None for the square.
     """
 
-    def __init__(self, grid: Grid, bandwidth: float, mirror: bool = True) -> None:
+    def __init__(
+        self, grid: Grid, bandwidth: float, mirror: bool = True, free: FreeSpace | None = None
+    ) -> None:
         self.grid, self.bandwidth = grid, bandwidth
+        self.diffusion: FreeKernel | None = None
+        if free is not None:
+            if free.grid != grid:
+                raise ValueError("smoother free space resolved on another grid")
+            if not mirror:
+                raise ValueError("smoother mirror must be True on free space (its walls reflect)")
+            self.diffusion = FreeKernel(free, bandwidth)
         self.gx, self.dgx = kernel_1d(grid.x, grid.x, bandwidth, grid.x0, grid.x1, mirror)
         self.gy, self.dgy = kernel_1d(grid.y, grid.y, bandwidth, grid.y0, grid.y1, mirror)
         alias = np.exp(-0.5 * (np.pi * bandwidth / max(grid.dx, grid.dy)) ** 2)
@@ -116,6 +139,8 @@ class Smoother:
         """``K_h * p`` ``(ny, nx)`` (1 / length^2) and its gradient ``(2, ny, nx)``
         (1 / length^3) for cell values ``p`` (1 / length^2).
         """
+        if self.diffusion is not None:
+            return self.diffusion.smooth(p)
         if self.spectral:
             return self.transformed(p)
         return self.matrices(p)
@@ -171,8 +196,13 @@ def smoothed_target(target: Target, bandwidth: float, mirror: bool = True) -> Ta
     (exact for a density with a closed form, else the noise-free KDE of its cell values);
     for a target given by cell values only, the noise-free KDE of those
     (:class:`Smoother`). ``p~_* >= min p_*`` (the mirrored kernel has unit mass on the
-    domain), so it is a valid target for the laws.
+    domain), so it is a valid target for the laws. On free space (``target.free``) the
+    diffusion kernel of the free-space KDE applied to the target's cell values,
+    restricted to free space.
     """
+    if target.free is not None:
+        values = Smoother(target.grid, bandwidth, mirror, target.free)(target.p)[0]
+        return Target.from_values(target.grid, values, target.free)
     if target.density is None:
         values = Smoother(target.grid, bandwidth, mirror)(target.p)[0]
     else:
@@ -299,11 +329,16 @@ class SmoothedEstimator:
 
     uses_kde = False
 
+    free_space = True
+
     def __init__(
         self, grid: Grid, model: FokkerPlanck, bandwidth: float, mirror: bool = True
     ) -> None:
         self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
-        self.smoother = Smoother(grid, self.bandwidth, flag("mirror", mirror))
+        mirror = flag("mirror", mirror)
+        if model.free is not None and not mirror:
+            raise ParameterError("mirror", mirror, "true on a domain with obstacles")
+        self.smoother = Smoother(grid, self.bandwidth, mirror, model.free)
 
     def resolution(self, measured: float | None) -> float | None:
         """The kernel's bandwidth ``h`` (length)."""

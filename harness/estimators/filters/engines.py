@@ -19,6 +19,7 @@ from typing import ClassVar
 import numpy as np
 import scipy.sparse as sp
 
+from harness.domains.base import FreeSpace
 from harness.estimators.filters.common import Integrator, MeasurementModel
 from harness.estimators.filters.local import LocalFilters
 from harness.estimators.filters.reference import (
@@ -85,11 +86,22 @@ class FilterEngine:
 
 
 class LocalEngine(FilterEngine, name="local"):
-    """The fast filters with local covariances (:mod:`harness.estimators.filters.local`)."""
+    """The fast filters with local covariances (:mod:`harness.estimators.filters.local`),
+    on the rectangle and on free space (``free``; the only engine that runs there).
+    """
 
-    def __init__(self, grid: Grid, sigma: float, dt: float, measurement: MeasurementModel):
+    free_space = True
+
+    def __init__(
+        self,
+        grid: Grid,
+        sigma: float,
+        dt: float,
+        measurement: MeasurementModel,
+        free: FreeSpace | None = None,
+    ):
         super().__init__(grid, sigma, dt, measurement)
-        self.filters = LocalFilters(grid, sigma, dt, measurement)
+        self.filters = LocalFilters(grid, sigma, dt, measurement, free)
 
     @classmethod
     def memory_bytes(cls, grid: Grid) -> int:

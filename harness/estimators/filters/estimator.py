@@ -12,7 +12,13 @@ from harness.estimators.filters.engines import FilterEngine
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import ParameterError, integer, number
-from harness.protocols import Control, MemoryEstimate, default_memory, require_field
+from harness.protocols import (
+    Control,
+    MemoryEstimate,
+    default_memory,
+    on_free_space,
+    require_field,
+)
 from harness.records import Estimate, StepInput
 
 
@@ -37,6 +43,9 @@ class FilterEstimator:
 
     uses_kde = True
     carries = ("traces",)  # every estimate holds the filters' covariance traces
+    free_space = True
+    """On free space (``model.free``) with the ``local`` engine; the dense engines are
+    refused there (one line, naming ``engine``)."""
 
     def resolution(self, measured: float | None) -> float | None:
         """The measurement's resolution: the filters estimate only the cosine modes of
@@ -72,7 +81,16 @@ class FilterEstimator:
         dt = number("dt", dt, 0.0, strict=True)
         # the swarm's size and the loop's step, as the run's shared keys must give them
         self.copies = {"robots": ("robots", measurement.n_robots), "dt": ("dt", dt)}
-        self.engine = FilterEngine.named(engine)(grid, model.sigma, dt, measurement)
+        chosen = FilterEngine.named(engine)
+        if model.free is None:
+            self.engine = chosen(grid, model.sigma, dt, measurement)
+            return
+        on_free = sorted(name for name, e in FilterEngine.registry.items() if on_free_space(e))
+        if not on_free_space(chosen):
+            raise ParameterError(
+                "engine", engine, f"{', '.join(on_free)} on a domain with obstacles"
+            )
+        self.engine = chosen(grid, model.sigma, dt, measurement, free=model.free)  # type: ignore[call-arg]
 
     @classmethod
     def memory_estimate(cls, grid: Grid, engine: str = "local", **params: object) -> MemoryEstimate:

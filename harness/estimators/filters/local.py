@@ -88,6 +88,18 @@ the grid, so estimates and errors converge as the grid is refined; on the paper'
 filters carry the same projected model (``F' = Pi F``, ``Q' = q Pi``, ``R' = Pi R Pi
 + (I - Pi)``).
 
+Free space (a domain with obstacles, ``free`` given). The transition is the
+Fokker-Planck operator on free space (no flux through closed faces: every component
+keeps its mass in the prediction); the band is :class:`~harness.estimators.filters.common.FreeBand`
+(the masked Laplacian's modes below the cut, each component's constant among them, 0 on
+blocked cells), its correlations computed from those modes; the gradient is the
+free-space gradient and the gradient update's Poisson problem is solved by
+:class:`~harness.estimators.filters.poisson.FreePoisson` (conjugate gradients with a
+lagged sparse LU, the components' constants pinned) on every grid, then projected on the
+band. The auxiliary density ``x_g`` starts with the KDE's mass on each component (the
+gradient does not see it). The rectangle's fast paths (cosine transforms, the banded
+Cholesky, :class:`~harness.estimators.filters.poisson.BandPoisson`) are not used there.
+
 Process noise ``Q = q dt k I`` (density) and ``q dt k_g I`` (gradient), as in the
 reference. The approximation error is measured, not assumed:
 ``benchmarks.filter_accuracy.compare_filters`` runs both forms in one closed loop.
@@ -100,8 +112,14 @@ import scipy.sparse as sp
 
 from harness.compiled.filters import band_transition_variance
 from harness.compiled.filters import squared_transition as compiled_squared_transition
-from harness.estimators.filters.common import BandLimit, FilterSettings, MeasurementModel
-from harness.estimators.filters.poisson import BandPoisson, WeightedPoisson
+from harness.domains.base import FreeSpace
+from harness.estimators.filters.common import (
+    BandLimit,
+    FilterSettings,
+    FreeBand,
+    MeasurementModel,
+)
+from harness.estimators.filters.poisson import BandPoisson, FreePoisson, WeightedPoisson
 from harness.fokker_planck import FokkerPlanck, implicit_solve
 from harness.grid import Grid
 from harness.velocity import VelocityField
@@ -183,17 +201,37 @@ class LocalFilters:
         sigma: Noise intensity (length^2 / s).
         dt: Measurement period (s).
         measurement: KDE measurement model (``k``, ``k_g``, settings).
+        free: Free space of a domain with obstacles (module docstring); None for the
+            rectangle.
     """
 
-    def __init__(self, grid: Grid, sigma: float, dt: float, measurement: MeasurementModel) -> None:
+    def __init__(
+        self,
+        grid: Grid,
+        sigma: float,
+        dt: float,
+        measurement: MeasurementModel,
+        free: FreeSpace | None = None,
+    ) -> None:
         self.grid, self.dt, self.measurement = grid, dt, measurement
+        self.free = free
         self.settings: FilterSettings = measurement.settings
-        self.operator = FokkerPlanck(grid, sigma)
-        self.poisson = WeightedPoisson(grid)
-        self.band = BandLimit(grid, self.settings.band_limit / measurement.bandwidth)
-        # above the LU preconditioner's grids, the gradient update is solved in the band
-        fine = grid.size > self.poisson.lu_max_cells and not self.band.is_identity
-        self.band_poisson = BandPoisson(grid, self.band) if fine else None
+        self.operator = FokkerPlanck(grid, sigma, free=free)
+        cutoff = self.settings.band_limit / measurement.bandwidth
+        self.band: BandLimit | FreeBand
+        self.poisson: WeightedPoisson | FreePoisson
+        self.band_poisson: BandPoisson | None = None
+        if free is None:
+            self.poisson = WeightedPoisson(grid)
+            self.band = BandLimit(grid, cutoff)
+            # above the LU preconditioner's grids, the gradient update is solved in the band
+            fine = grid.size > self.poisson.lu_max_cells and not self.band.is_identity
+            self.band_poisson = BandPoisson(grid, self.band) if fine else None
+            self.area = grid.area
+        else:
+            self.poisson = FreePoisson(free)
+            self.band = FreeBand(free, cutoff)
+            self.area = free.free_area
         # the band's correlations between neighbouring cells, for the variance prediction
         self.correlations = None if self.band.is_identity else self.band.correlations()
         self.x: np.ndarray | None = None  # p_hat, flattened
@@ -218,7 +256,7 @@ class LocalFilters:
         fit = self._gradient_solve(
             np.ones(2 * g.size), self.poisson.gt @ np.asarray(grad_kde).ravel()
         )
-        self.x_g = self.band(fit) + 1.0 / g.area
+        self.x_g = self.band(fit) + self._constants(p_kde)
         self.x_prior, self.x_g_prior = self.x.copy(), self.x_g.copy()
         self.d_prior, self.c_g_prior = self.d.copy(), self.c_g.copy()
         return self.estimates
@@ -269,6 +307,22 @@ class LocalFilters:
         )
         return self.estimates
 
+    def _constants(self, p_kde: np.ndarray) -> np.ndarray | float:
+        """The part of ``x_g`` its gradient does not see: ``1 / |Omega|`` on the
+        rectangle; on free space, on each component the KDE's mass there over its area.
+        """
+        if self.free is None:
+            return 1.0 / self.grid.area
+        labels = self.free.labels.ravel()
+        on = labels >= 0
+        n = self.free.n_components
+        p = np.asarray(p_kde, dtype=float).ravel()
+        mass = np.bincount(labels[on], p[on], n)
+        count = np.bincount(labels[on], minlength=n)
+        out = np.zeros(self.grid.size)
+        out[on] = (mass / count)[labels[on]]
+        return out
+
     def _gradient_solve(self, c: np.ndarray, b: np.ndarray) -> np.ndarray:
         """The gradient update's weighted Poisson solve: in the band on grids above the
         LU preconditioner's size (:class:`~harness.estimators.filters.poisson.BandPoisson`),
@@ -293,11 +347,17 @@ class LocalFilters:
         """
         assert self.d is not None and self.c_g is not None
         a = self.grid.cell_area
+        if self.free is not None:  # the states on free cells only
+            on = self.free.cells.ravel()
+            both = np.concatenate([on, on])
+            return float(self.d[on].sum()) * a, float((1.0 / self.c_g[both]).sum()) * a
         return float(self.d.sum()) * a, float((1.0 / self.c_g).sum()) * a
 
     @property
     def trace_Q(self) -> tuple[float, float]:
-        """L2 traces of ``Q`` per step, ``q dt k M a`` and ``q dt k_g 2M a``."""
+        """L2 traces of ``Q`` per step, ``q dt k M a`` and ``q dt k_g 2M a`` (``M`` the
+        free cells on free space).
+        """
         k, k_g = self.measurement.constants
-        q = self.settings.process_noise * self.dt * self.grid.area
+        q = self.settings.process_noise * self.dt * self.area
         return q * k, 2 * q * k_g
