@@ -10,6 +10,7 @@ import numba
 import numpy as np
 
 from harness.compiled import SerialParallel
+from harness.compiled.obstacles import avoid
 
 PARALLEL_MIN_ROBOTS = 1 << 15
 """Fewer robots run the serial build of the same loop: a parallel region costs more
@@ -27,9 +28,14 @@ def _euler_maruyama_step(
     y1: float,
     nx: int,
     ny: int,
-    scale: float = 1.0,
+    scale: float,
+    clear: np.ndarray,
+    obstacles: bool,
 ) -> None:
-    """In place: ``pos += interp(vc, pos) dt + scale noise``, then reflect at the walls.
+    """In place: ``pos += interp(vc, pos) dt + scale noise``, then reflect at the walls,
+    and, when ``obstacles``, at the obstacles of the map of clearances ``clear`` (``(r,
+    r)`` uint8, :func:`harness.compiled.obstacles.avoid`; not read otherwise, so the
+    plain rectangle passes any array, e.g. ``(1, 1)``).
 
     ``pos`` is ``(2, N)``, ``vc`` the cell-centre velocity ``(2, ny, nx)`` and
     ``noise`` the standard (``scale = 1``: already scaled) Gaussian increments
@@ -64,8 +70,12 @@ def _euler_maruyama_step(
             py = 2.0 * y0 - py
         if py > y1:
             py = 2.0 * y1 - py
-        pos[0, k] = min(max(px, x0), x1)
-        pos[1, k] = min(max(py, y0), y1)
+        px = min(max(px, x0), x1)
+        py = min(max(py, y0), y1)
+        if obstacles:
+            px, py = avoid(pos[0, k], pos[1, k], px, py, clear, x0, x1, y0, y1)
+        pos[0, k] = px
+        pos[1, k] = py
 
 
 euler_maruyama_step = SerialParallel(
@@ -74,6 +84,31 @@ euler_maruyama_step = SerialParallel(
 """Compiled :func:`_euler_maruyama_step`, parallel from ``PARALLEL_MIN_ROBOTS`` robots on;
 the serial and parallel builds run the same per-robot arithmetic, so they give the same
 bits."""
+
+
+def _avoid_moves(
+    old: np.ndarray,
+    pos: np.ndarray,
+    clear: np.ndarray,
+    x0: float,
+    x1: float,
+    y0: float,
+    y1: float,
+) -> None:
+    """In place: each robot's move from ``old[:, k]`` to ``pos[:, k]`` (``(2, N)``, inside
+    the rectangle) by the obstacle rule :func:`harness.compiled.obstacles.avoid` on the
+    map of clearances ``clear``, for moves made outside the compiled steps (a law's own
+    velocities per robot, the localisation error).
+    """
+    n = pos.shape[1]
+    for k in numba.prange(n):
+        bx, by = avoid(old[0, k], old[1, k], pos[0, k], pos[1, k], clear, x0, x1, y0, y1)
+        pos[0, k] = bx
+        pos[1, k] = by
+
+
+avoid_moves = SerialParallel(_avoid_moves, "pos", lambda pos: pos.shape[1], PARALLEL_MIN_ROBOTS)
+"""Compiled :func:`_avoid_moves`."""
 
 
 def _speed_sums(
