@@ -23,13 +23,17 @@ already reflected at the rectangle's walls):
 Every point a robot is left at is in a free square (by the look-up itself), and no
 straight part of its path crosses a blocked square, so a robot never enters an obstacle
 of the map nor tunnels through one however long its step.
+
+The rule runs inside the compiled steps (:mod:`harness.compiled.agents`,
+:mod:`harness.compiled.robots`), which numba caches on disk keyed by their own module's
+source only: after editing this module, delete ``harness/compiled/__pycache__`` so they
+are compiled again with it.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-
 
 
 @numba.njit(cache=True, nogil=True)

@@ -147,7 +147,7 @@ class Swarm:
     _noise: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self.positions = np.array(self.positions, dtype=float)
+        self.positions = np.array(self.positions, dtype=float, order="C")  # draws fill it flat
         if self.positions.ndim != 2 or self.positions.shape[0] != 2 or self.positions.shape[1] < 1:
             raise ValueError(
                 f"positions must have shape (2, N) with N >= 1, got {self.positions.shape}"

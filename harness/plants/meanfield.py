@@ -15,8 +15,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from harness.estimators.kde import noise_constants
 from harness.domains.base import FreeSpace
+from harness.estimators.kde import noise_constants
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import integer, number, require

@@ -111,7 +111,7 @@ class RobotMap:
             rate = got / drawn
             need = n - got
             want = int(min(np.ceil(1.2 * need / rate) + 16 if rate > 0 else 8 * drawn, MAX_DRAWS))
-        return np.hstack(kept)
+        return np.ascontiguousarray(np.hstack(kept))
 
     def avoid(self, old: np.ndarray, positions: np.ndarray) -> np.ndarray:
         """In place: each robot's move from ``old`` to ``positions`` (``(2, N)``, inside
