@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from harness.compiled.agents import euler_maruyama_step
+from harness.compiled.agents import euler_maruyama_step, euler_maruyama_step_free
 from harness.estimators.kde import KDE
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
@@ -172,27 +172,19 @@ class Swarm:
 
         The Gaussian increments come from ``rng`` (:func:`draw_normals`); the
         scaling by ``sqrt(2 sigma dt)``, interpolation, update and reflection run in
-        one compiled parallel pass (:func:`harness.compiled.agents.euler_maruyama_step`),
+        one compiled parallel pass (:func:`harness.compiled.agents.euler_maruyama_step`; on a
+        domain with obstacles :func:`harness.compiled.agents.euler_maruyama_step_free`),
         which :meth:`step_reference` states in plain numpy.
         """
         g = self.grid
         draw_normals(rng, self._noise)
         centres = np.ascontiguousarray(v.centres, dtype=float)
-        euler_maruyama_step(
-            self.positions,
-            centres,
-            self._noise,
-            float(dt),
-            g.x0,
-            g.x1,
-            g.y0,
-            g.y1,
-            g.nx,
-            g.ny,
-            float(np.sqrt(2.0 * self.sigma * dt)),
-            self._clear,
-            self.obstacles is not None,
-        )
+        args = (self.positions, centres, self._noise, float(dt), g.x0, g.x1, g.y0, g.y1)
+        scale = float(np.sqrt(2.0 * self.sigma * dt))
+        if self.obstacles is None:
+            euler_maruyama_step(*args, g.nx, g.ny, scale)
+        else:
+            euler_maruyama_step_free(*args, g.nx, g.ny, scale, self.obstacles.clear)
         return self.positions
 
     def _avoid(self, old: np.ndarray | None) -> None:
