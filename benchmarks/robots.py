@@ -10,7 +10,10 @@ Two figures against their targets:
   what the robots weigh in a run;
 * the unicycles' step at N = 1e6 under the paper's start-time field: at most 30 ms,
   beside the ideal integrators' and, for each, the whole plant step
-  (:meth:`harness.plants.agents.Agents.advance`, with the limit ``p_inf``).
+  (:meth:`harness.plants.agents.Agents.advance`, with the limit ``p_inf``);
+* the ideal integrators' step on the rooms (``domain=rooms``: every move checked
+  against the robots' map of obstacles) over the same step on the square, at N = 1024
+  and N = 1e6, under the square's start-time field (no target: what the map costs).
 
 Times are medians over repeats of the mean over a block of steps, after a warm-up (the
 compiled loops are built then). One process, BLAS on one thread as in a run; run with
@@ -118,6 +121,32 @@ def plant_step_ms(plant: str, n_robots: int, steps: int, repeats: int) -> float:
     return _median_ms(step, steps, repeats)
 
 
+def domain_step_ms(domain: str, n_robots: int, steps: int, repeats: int) -> float:
+    """Median over ``repeats`` blocks of the mean robots' step (ms) of ``N`` ideal
+    integrators on ``domain`` (``square`` or ``rooms``) under the square's start-time
+    field (:meth:`harness.plants.agents.Agents.advance`); the plant is made with the
+    run's grid, ``p_0`` and bandwidth and the domain's free space.
+    """
+    from harness.domains.rooms import Rooms
+    from harness.fokker_planck import FokkerPlanck
+    from harness.plants.agents import Agents
+
+    parts, command, rng = _started("agents", n_robots)
+    grid = parts.grid
+    free = Rooms().resolve(grid) if domain == "rooms" else None
+    model = FokkerPlanck(grid, parts.model.sigma, free=free)
+    plant = Agents(
+        grid=grid, model=model, init=parts.init, n=n_robots,
+        bandwidth=parts.plant.kde.bandwidth, dt=parts.dt,
+    )  # fmt: skip
+    plant.start(rng)
+
+    def step() -> None:
+        plant.advance(command, None, parts.dt, rng)
+
+    return _median_ms(step, steps, repeats)
+
+
 def main(argv: list[str] | None = None) -> bool:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=200, help="steps per block at N = 1024")
@@ -148,6 +177,14 @@ def main(argv: list[str] | None = None) -> bool:
             target = LARGE_STEP_TARGET_MS if plant == "unicycles" else None
             ok &= record(f"N = {args.large:,d}: {plant}, robots' step", ms, "ms", target)
             record(f"N = {args.large:,d}: {plant}, plant step", whole, "ms")
+        print("ideal integrators' step on the rooms (robots' map of obstacles) and the square:")
+        for n_robots, steps in ((1024, 20 * args.steps), (args.large, 10)):
+            square = domain_step_ms("square", n_robots, steps, args.repeats)
+            rooms = domain_step_ms("rooms", n_robots, steps, args.repeats)
+            unit, scale = ("us", 1e3) if n_robots < 100_000 else ("ms", 1.0)
+            record(f"N = {n_robots:,d}: agents on the square, robots' step", square * scale, unit)
+            record(f"N = {n_robots:,d}: agents on the rooms, robots' step", rooms * scale, unit)
+            record(f"N = {n_robots:,d}: rooms / square, robots' step", rooms / square, "x")
     return ok
 
 

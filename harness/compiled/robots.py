@@ -20,6 +20,7 @@ import numpy as np
 
 from harness.compiled import SerialParallel
 from harness.compiled.agents import PARALLEL_MIN_ROBOTS
+from harness.compiled.obstacles import avoid
 
 
 def _interpolate_robots(
@@ -74,11 +75,15 @@ def _unicycle_step(
     y0: float,
     y1: float,
     scale: float,
+    clear: np.ndarray,
+    obstacles: bool,
 ) -> float:
     """In place, one hold of ``dt`` for every unicycle (the equations are in
     :mod:`harness.plants.unicycles`): the exact hold of the feedback-linearising law under the
     commanded velocity ``v[:, k]`` when it stays within the limits, else one arc of the
-    clipped speeds; the scaled noise; the walls. ``heading`` holds the unit vectors
+    clipped speeds; the scaled noise; the walls, and when ``obstacles`` the obstacles of
+    the map of clearances ``clear`` (:func:`harness.compiled.obstacles.avoid`; not read
+    otherwise), the heading kept as at the walls. ``heading`` holds the unit vectors
     ``e(theta)`` ``(2, N)``; ``applied[:, k]`` gets the displacement over ``dt``. The
     commanded velocity is ``v[:, k]``; a field's is interpolated first, in a pass of its
     own (:func:`_interpolate_robots`: measured at N = 1024 and 10^6, the two passes take
@@ -175,8 +180,12 @@ def _unicycle_step(
             py = 2.0 * y0 - py
         if py > y1:
             py = 2.0 * y1 - py
-        pos[0, k] = min(max(px, x0), x1)
-        pos[1, k] = min(max(py, y0), y1)
+        px = min(max(px, x0), x1)
+        py = min(max(py, y0), y1)
+        if obstacles:
+            px, py = avoid(pos[0, k], pos[1, k], px, py, clear, x0, x1, y0, y1)
+        pos[0, k] = px
+        pos[1, k] = py
         ex = applied[0, k] - vx
         ey = applied[1, k] - vy
         total += math.sqrt(ex * ex + ey * ey)
@@ -201,10 +210,14 @@ def _double_integrator_step(
     y0: float,
     y1: float,
     scale: float,
+    clear: np.ndarray,
+    obstacles: bool,
 ) -> None:
     """In place, one hold of ``dt`` for every double integrator (the equations are in
     :mod:`harness.plants.double_integrators`): the exact solution of the saturated velocity
-    loop, the scaled noise, the walls; ``applied[:, k]`` gets the displacement over
+    loop, the scaled noise, the walls, and when ``obstacles`` the obstacles of the map of
+    clearances ``clear`` (:func:`harness.compiled.obstacles.avoid`; not read otherwise),
+    the velocity kept as at the walls; ``applied[:, k]`` gets the displacement over
     ``dt``.
     """
     n = pos.shape[1]
@@ -250,8 +263,12 @@ def _double_integrator_step(
             py = 2.0 * y0 - py
         if py > y1:
             py = 2.0 * y1 - py
-        pos[0, k] = min(max(px, x0), x1)
-        pos[1, k] = min(max(py, y0), y1)
+        px = min(max(px, x0), x1)
+        py = min(max(py, y0), y1)
+        if obstacles:
+            px, py = avoid(pos[0, k], pos[1, k], px, py, clear, x0, x1, y0, y1)
+        pos[0, k] = px
+        pos[1, k] = py
 
 
 double_integrator_step = SerialParallel(

@@ -14,7 +14,10 @@ value of the nearest centre row/column beyond the outermost centres) and ``R``
 reflects a coordinate that left the interval ``[lo, hi]`` back across the wall,
 ``x -> 2 lo - x`` or ``x -> 2 hi - x`` (exact for the reflected Brownian motion's
 law when one step crosses at most one wall; a final clip guards against steps
-longer than the domain). Positions are stored as an array of shape ``(2, N)``
+longer than the domain). On a domain with obstacles (the run's ``model.free``) the
+robots start from ``p_0`` restricted to free space and every move then reflects at the
+obstacles of the robots' map (:mod:`harness.plants.obstacles`, the rule in
+:mod:`harness.compiled.obstacles`). Positions are stored as an array of shape ``(2, N)``
 (row 0: x, row 1: y), in length units. All randomness comes from the
 ``numpy.random.Generator`` passed in.
 
@@ -52,12 +55,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from harness.compiled.agents import euler_maruyama_step
+from harness.compiled.agents import euler_maruyama_step, euler_maruyama_step_free
 from harness.estimators.kde import KDE
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import flag, integer, number, require
 from harness.plants.link import Link, command_link
+from harness.plants.obstacles import NO_MAP, RobotMap
 from harness.protocols import (
     MemoryEstimate,
     default_memory,
@@ -124,30 +128,38 @@ def reflect(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
 
 @dataclass
 class Swarm:
-    """``N`` robots in the grid's rectangle.
+    """``N`` robots in the grid's rectangle, less the obstacles of ``obstacles``.
 
     Args:
         grid: Grid giving the domain and the velocity field's layout.
-        positions: Initial positions, shape ``(2, N)``, inside the domain.
+        positions: Initial positions, shape ``(2, N)``, inside the domain (and in free
+            squares of ``obstacles``).
         sigma: Noise intensity ``sigma >= 0`` (length^2 / time).
+        obstacles: The robots' map of obstacles (:class:`harness.plants.obstacles.RobotMap`),
+            None on the plain rectangle. Every move reflects at the walls, then at the
+            obstacles (:mod:`harness.compiled.obstacles`).
     """
 
     grid: Grid
     positions: np.ndarray
     sigma: float
+    obstacles: RobotMap | None = None
     _noise: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        self.positions = np.array(self.positions, dtype=float)
+        self.positions = np.array(self.positions, dtype=float, order="C")  # draws fill it flat
         if self.positions.ndim != 2 or self.positions.shape[0] != 2 or self.positions.shape[1] < 1:
             raise ValueError(
                 f"positions must have shape (2, N) with N >= 1, got {self.positions.shape}"
             )
         if not self.grid.contains(self.positions[0], self.positions[1]).all():
             raise ValueError("initial positions must lie inside the domain")
+        if self.obstacles is not None and self.obstacles.blocked(*self.positions).any():
+            raise ValueError("initial positions must lie in free space (not in an obstacle)")
         if not (np.isfinite(self.sigma) and self.sigma >= 0):
             raise ValueError(f"sigma must be finite and >= 0, got {self.sigma}")
         self._noise = np.empty_like(self.positions)
+        self._clear = NO_MAP if self.obstacles is None else self.obstacles.clear
 
     @property
     def n(self) -> int:
@@ -160,42 +172,52 @@ class Swarm:
 
         The Gaussian increments come from ``rng`` (:func:`draw_normals`); the
         scaling by ``sqrt(2 sigma dt)``, interpolation, update and reflection run in
-        one compiled parallel pass (:func:`harness.compiled.agents.euler_maruyama_step`),
+        one compiled parallel pass (:func:`harness.compiled.agents.euler_maruyama_step`; on a
+        domain with obstacles :func:`harness.compiled.agents.euler_maruyama_step_free`),
         which :meth:`step_reference` states in plain numpy.
         """
         g = self.grid
         draw_normals(rng, self._noise)
         centres = np.ascontiguousarray(v.centres, dtype=float)
-        euler_maruyama_step(
-            self.positions,
-            centres,
-            self._noise,
-            float(dt),
-            g.x0,
-            g.x1,
-            g.y0,
-            g.y1,
-            g.nx,
-            g.ny,
-            float(np.sqrt(2.0 * self.sigma * dt)),
-        )
+        args = (self.positions, centres, self._noise, float(dt), g.x0, g.x1, g.y0, g.y1)
+        scale = float(np.sqrt(2.0 * self.sigma * dt))
+        if self.obstacles is None:
+            euler_maruyama_step(*args, g.nx, g.ny, scale)
+        else:
+            euler_maruyama_step_free(*args, g.nx, g.ny, scale, self.obstacles.clear)
         return self.positions
+
+    def _avoid(self, old: np.ndarray | None) -> None:
+        """The obstacles' rule on the moves from ``old`` to the positions (in place;
+        nothing on the plain rectangle, where ``old`` is None).
+        """
+        if self.obstacles is not None:
+            assert old is not None
+            self.obstacles.avoid(old, self.positions)
+
+    def _before(self) -> np.ndarray | None:
+        """A copy of the positions before a move made in numpy, for :meth:`_avoid`; None
+        on the plain rectangle.
+        """
+        return None if self.obstacles is None else self.positions.copy()
 
     def step_robots(
         self, velocities: np.ndarray, dt: float, rng: np.random.Generator
     ) -> np.ndarray:
         """Euler-Maruyama with each robot's own velocity ``(2, N)`` (length / s), for a
         law that moves each robot itself: ``X_i <- R(X_i + v_i dt + sqrt(2 sigma dt) xi_i)``, the
-        draws as in :meth:`step` (``R`` the reflection at the walls).
+        draws as in :meth:`step` (``R`` the reflection at the walls, then at the obstacles).
         """
         g = self.grid
         v = np.asarray(velocities, dtype=float)
         if v.shape != self.positions.shape:
             raise ValueError(f"velocities must have shape {self.positions.shape}, got {v.shape}")
         draw_normals(rng, self._noise)
+        old = self._before()
         self.positions += v * dt + self._noise * np.sqrt(2.0 * self.sigma * dt)
         reflect(self.positions[0], g.x0, g.x1)
         reflect(self.positions[1], g.y0, g.y1)
+        self._avoid(old)
         return self.positions
 
     def move(self, v: np.ndarray, dt: float, rng: np.random.Generator) -> np.ndarray:
@@ -238,9 +260,11 @@ class Swarm:
         draw_normals(rng, self._noise)
         self._noise *= np.sqrt(2.0 * self.sigma * dt)
         drift = interpolate(g, v.centres, self.positions)
+        old = self._before()
         self.positions += drift * dt + self._noise
         reflect(self.positions[0], g.x0, g.x1)
         reflect(self.positions[1], g.y0, g.y1)
+        self._avoid(old)
         return self.positions
 
     def histogram(self) -> np.ndarray:
@@ -291,7 +315,9 @@ class Agents:
             move, from the plant's own stream ``[seed, 3]``, so the robots' own draws are
             those of the run without it; reflected into the domain at the walls), while
             the robots move from their true positions and the swarm metrics use the true
-            ones. 0 draws nothing.
+            ones. 0 draws nothing. On a domain with obstacles the observation is kept
+            out of them as a move from the true position would be
+            (:meth:`harness.plants.obstacles.RobotMap.avoid`).
         seed: The run's seed, for the localisation error's stream and the link's.
         link_period, link_latency, link_loss: The command link
             (:class:`harness.plants.link.Link`): time between broadcasts (s; None: every
@@ -343,6 +369,7 @@ class Agents:
         require(h <= side, "bandwidth", bandwidth, f"at most the domain side {side:g}")
         require(method in KDE.METHODS, "method", method, f"one of {', '.join(KDE.METHODS)}")
         self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method)
+        self.obstacles = RobotMap.of(getattr(model, "free", None))
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h
         self.link = command_link(link_period, link_latency, link_loss, dt, self.seed)
@@ -355,6 +382,9 @@ class Agents:
         self._steps = 0
 
     has_robots = True
+
+    free_space = True
+    """The robots honour a domain with obstacles (:mod:`harness.plants.obstacles`)."""
 
     BYTES_PER_ROBOT = 200
     """Per robot: positions, noise and interpolation temporaries (float64, 2 x 8 bytes
@@ -413,6 +443,8 @@ class Agents:
             )
             reflect(seen[0], g.x0, g.x1)
             reflect(seen[1], g.y0, g.y1)
+            if self.obstacles is not None:
+                self.obstacles.avoid(self.swarm.positions, seen)
             self._observed = seen
 
     headings: np.ndarray | None = None
@@ -421,11 +453,17 @@ class Agents:
 
     def _robots(self, positions: np.ndarray) -> Swarm:
         """The robots at ``positions`` ``(2, N)``: ideal integrators here."""
-        return Swarm(self.grid, positions, self.model.sigma)
+        return Swarm(self.grid, positions, self.model.sigma, self.obstacles)
 
     def start(self, rng: np.random.Generator) -> None:
-        """Draw ``N`` robots from ``p_0``."""
-        self.swarm = self._robots(self.init.sample(self.n, self.grid, rng))
+        """Draw ``N`` robots from ``p_0`` (on a domain with obstacles, from ``p_0``
+        restricted to free space: :meth:`harness.plants.obstacles.RobotMap.sample`).
+        """
+        if self.obstacles is None:
+            positions = self.init.sample(self.n, self.grid, rng)
+        else:
+            positions = self.obstacles.sample(self.init, self.n, rng)
+        self.swarm = self._robots(positions)
         self.link.start(self.n)
         self.tracking_error = self.command_age = None
         self._steps = 0

@@ -24,7 +24,9 @@ exp(-g (t - t_s))``, so
 
 The acceleration never exceeds ``a_max``, at every instant. Then the noise
 ``sqrt(2 sigma dt) xi`` (the run's stream, drawn as for the single integrators) and the
-walls reflect the position (:func:`harness.plants.agents.reflect`; the velocity is kept).
+walls reflect the position (:func:`harness.plants.agents.reflect`; the velocity is kept),
+and so do the obstacles on a domain with them (:mod:`harness.compiled.obstacles`; the
+velocity is kept there too, also when the robot stays where it was).
 With a large gain and limit the robot's velocity reaches ``v`` within a step and its
 position follows the single integrator's.
 
@@ -45,6 +47,7 @@ from harness.grid import Grid
 from harness.parameters import number
 from harness.plants.agents import Agents, Swarm, check_spread, draw_normals, reflect, spread_values
 from harness.plants.link import Link
+from harness.plants.obstacles import RobotMap
 from harness.records import Command
 
 
@@ -84,6 +87,7 @@ class DoubleIntegrators(Agents):
             self.grid, positions, self.model.sigma,
             spread_values(self.a_max, s, n, rng),
             spread_values(self.gain, s, n, rng),
+            self.obstacles,
         )  # fmt: skip
 
 
@@ -96,6 +100,8 @@ class DoubleIntegratorSwarm(Swarm):
         sigma: Noise intensity ``sigma >= 0`` (length^2 / s).
         a_max: Acceleration limit per robot ``(N,)`` (length / s^2), ``> 0``.
         gain: Velocity-loop gain per robot ``(N,)`` (1 / s), ``> 0``.
+        obstacles: The robots' map of obstacles, None on the plain rectangle
+            (:class:`~harness.plants.agents.Swarm`).
     """
 
     def __init__(
@@ -105,8 +111,9 @@ class DoubleIntegratorSwarm(Swarm):
         sigma: float,
         a_max: np.ndarray,
         gain: np.ndarray,
+        obstacles: RobotMap | None = None,
     ) -> None:
-        super().__init__(grid, positions, sigma)
+        super().__init__(grid, positions, sigma, obstacles)
         n = self.n
         self.velocities = np.zeros_like(self.positions)
         self.a_max = np.array(a_max, dtype=float).reshape(n)
@@ -132,6 +139,7 @@ class DoubleIntegratorSwarm(Swarm):
             self.positions, self.velocities, np.ascontiguousarray(v, dtype=float), self._noise,
             self.a_max, self.gain, self.applied, float(dt),
             g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
+            self._clear, self.obstacles is not None,
         )  # fmt: skip
         return self.applied
 
@@ -161,7 +169,9 @@ def double_integrator_step_reference(
     w = v + (w - v) * np.exp(-gain * rest)
     swarm.velocities[:] = w
     swarm.applied[:] = disp / dt
+    old = swarm._before()
     swarm.positions += disp + swarm._noise * np.sqrt(2.0 * swarm.sigma * dt)
     reflect(swarm.positions[0], g.x0, g.x1)
     reflect(swarm.positions[1], g.y0, g.y1)
+    swarm._avoid(old)
     return swarm.applied

@@ -26,6 +26,7 @@ import numpy as np
 from harness.estimators.smoothing import Smoother
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
+from harness.plants.meanfield import initial_density
 from harness.protocols import Control, Plant, kernel, needs_robots, require_field
 from harness.records import ControlInput, Estimate
 from harness.targets.densities import Density
@@ -60,7 +61,7 @@ class Limit:
         )
         self.grid, self.model, self.init, self.control = grid, model, init, control
         self.smoother = Smoother(grid, bandwidth, mirror)
-        self.density = init.on_grid(grid)
+        self.density = initial_density(init, grid, getattr(model, "free", None))
         self.t = 0.0
 
     @classmethod
@@ -81,8 +82,10 @@ class Limit:
         return cls(grid, model, init, control, *measured)
 
     def start(self) -> None:
-        """``p_inf = p_0`` on the grid at ``t = 0``."""
-        self.density = self.init.on_grid(self.grid)
+        """``p_inf = p_0`` on the grid at ``t = 0`` (restricted to free space on a domain
+        with obstacles).
+        """
+        self.density = initial_density(self.init, self.grid, getattr(self.model, "free", None))
         self.t = 0.0
 
     def advance(self, dt: float) -> np.ndarray:

@@ -2,6 +2,12 @@
 equation``) and the measurement is ``p`` plus seeded Gaussian noise with the KDE's own
 variances ``k p`` and ``k_g p`` per cell (notes section 3), for the swarm size and
 bandwidth configured.
+
+On a domain with obstacles (the model's ``free``) the density starts from ``p_0``
+restricted to the free cells (:meth:`harness.domains.base.FreeSpace.restrict`), the
+Fokker-Planck step keeps it there, and the measured gradient is free space's
+(:meth:`harness.domains.base.FreeSpace.gradient`: reflecting at closed faces). The noise
+is ``sqrt(k p)``, so it is 0 on blocked cells, where ``p`` is.
 """
 
 from __future__ import annotations
@@ -9,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
+from harness.domains.base import FreeSpace
 from harness.estimators.kde import noise_constants
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
@@ -40,6 +47,9 @@ class MeanField:
     positions = None
     has_robots = False
 
+    free_space = True
+    """The density lives on the model's free space (module docstring)."""
+
     def __init__(
         self,
         grid: Grid,
@@ -61,7 +71,8 @@ class MeanField:
             value = {"link_loss": link_loss, "link_latency": link_latency}.get(bad, link_period)
             require(False, bad, value, "the ideal link on plant=meanfield (it has no robots)")
         self.grid, self.model = grid, model
-        self.density = init.on_grid(grid)
+        self.free = getattr(model, "free", None)
+        self.density = initial_density(init, grid, self.free)
         self.robots = integer("robots", robots, 1)
         self.bandwidth = number("bandwidth", bandwidth, 0.0, strict=True)
         self.k, self.k_g = noise_constants(self.robots, self.bandwidth)
@@ -92,6 +103,14 @@ class MeanField:
         p = self.density
         sd = np.sqrt(np.maximum(p, 0.0))
         p_meas = p + np.sqrt(self.k) * sd * rng.standard_normal(self.grid.shape)
-        grad = self.grid.gradient(p)
+        grad = self.grid.gradient(p) if self.free is None else self.free.gradient(p)
         grad_meas = grad + np.sqrt(self.k_g) * sd * rng.standard_normal((2, *self.grid.shape))
         return Measurement(p_meas, grad_meas)
+
+
+def initial_density(init: Density, grid: Grid, free: FreeSpace | None) -> np.ndarray:
+    """``p_0`` on the grid, restricted to the free cells of ``free`` (zero on blocked
+    cells, unit mass on the free ones) when given.
+    """
+    p = init.on_grid(grid)
+    return p if free is None else free.restrict(p)

@@ -47,7 +47,9 @@ and the forward speed ``u = e(theta_0) . v`` clipped to ``[-v_max, v_max]``,
 an approximation of the saturated law's hold that keeps the limits. Either way the
 noise ``sqrt(2 sigma dt) xi`` follows (the run's stream, drawn as for the single
 integrators, so a run of the same seed has the same increments), then the walls
-reflect the axle position (:func:`harness.plants.agents.reflect`; the heading is kept).
+reflect the axle position (:func:`harness.plants.agents.reflect`; the heading is kept),
+and so do the obstacles on a domain with them (:mod:`harness.compiled.obstacles`; the
+heading is kept there too, also when the robot stays where it was).
 
 What the mean-field model no longer captures: the density of axle positions is not
 transported by ``v`` but by ``u e(theta)``, a velocity that depends on each robot's
@@ -68,6 +70,7 @@ from harness.grid import Grid
 from harness.parameters import number
 from harness.plants.agents import Agents, Swarm, check_spread, draw_normals, reflect, spread_values
 from harness.plants.link import Link
+from harness.plants.obstacles import RobotMap
 from harness.records import Command
 from harness.velocity import VelocityField
 
@@ -128,6 +131,7 @@ class Unicycles(Agents):
             spread_values(self.v_max, s, n, rng),
             spread_values(self.omega_max, s, n, rng),
             spread_values(self.lookahead, s, n, rng),
+            self.obstacles,
         )  # fmt: skip
 
 
@@ -143,6 +147,8 @@ class UnicycleSwarm(Swarm):
         v_max: Forward-speed limit per robot ``(N,)`` (length / s), ``> 0``.
         omega_max: Turn-rate limit per robot ``(N,)`` (rad / s), ``> 0``.
         lookahead: Look-ahead distance ``l`` per robot ``(N,)`` (length), ``> 0``.
+        obstacles: The robots' map of obstacles, None on the plain rectangle
+            (:class:`~harness.plants.agents.Swarm`).
     """
 
     def __init__(
@@ -154,8 +160,9 @@ class UnicycleSwarm(Swarm):
         v_max: np.ndarray,
         omega_max: np.ndarray,
         lookahead: np.ndarray,
+        obstacles: RobotMap | None = None,
     ) -> None:
-        super().__init__(grid, positions, sigma)
+        super().__init__(grid, positions, sigma, obstacles)
         n = self.n
         theta = np.array(headings, dtype=float).reshape(n)
         self.headings = np.array([np.cos(theta), np.sin(theta)])
@@ -179,6 +186,7 @@ class UnicycleSwarm(Swarm):
             self.positions, self.headings, np.ascontiguousarray(v, dtype=float), self._noise,
             self.v_max, self.omega_max, self.lookahead, self.applied, float(dt),
             g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
+            self._clear, self.obstacles is not None,
         )  # fmt: skip
         return self.applied
 
@@ -210,6 +218,7 @@ class UnicycleSwarm(Swarm):
             self.positions, self.headings, self._commanded, self._noise, self.v_max,
             self.omega_max, self.lookahead, self.applied, float(dt),
             g.x0, g.x1, g.y0, g.y1, float(np.sqrt(2.0 * self.sigma * dt)),
+            self._clear, self.obstacles is not None,
         )  # fmt: skip
         return float(total) / self.n
 
@@ -253,8 +262,10 @@ def unicycle_step_reference(
     disp = np.where(exact, held, arc)
     heading = np.where(exact, end, theta + omega * dt)
     swarm.applied[:] = disp / dt
+    old = swarm._before()
     swarm.positions += disp + swarm._noise * np.sqrt(2.0 * swarm.sigma * dt)
     reflect(swarm.positions[0], g.x0, g.x1)
     reflect(swarm.positions[1], g.y0, g.y1)
+    swarm._avoid(old)
     swarm.headings[:] = [np.cos(heading), np.sin(heading)]
     return swarm.applied
