@@ -89,3 +89,38 @@ def points_in_free_cells(
         out[:, idx[ok]] = p[:, ok]
         wanting[idx[ok]] = False
     return out
+
+
+def visible_free_cells(free: FreeSpace, positions: np.ndarray) -> np.ndarray:
+    """The flat free cell each robot at ``positions`` ``(2, N)`` starts its way from:
+    among its own cell and the 8 around it, the nearest free one (by the distance to
+    its centre) whose centre it sees (the segment meets no blocked square of the
+    raster, :func:`segments_blocked`); the nearest free cell
+    (:func:`nearest_free_cells`) when it sees none.
+    """
+    g = free.grid
+    own_row, own_col = np.divmod(_cell_of(g, positions), g.nx)
+    best = nearest_free_cells(free)[own_row * g.nx + own_col]
+    best_distance = np.full(positions.shape[1], np.inf)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            row, col = own_row + dr, own_col + dc
+            inside = (row >= 0) & (row < g.ny) & (col >= 0) & (col < g.nx)
+            cell = np.where(inside, row * g.nx + col, 0)
+            ok = inside & free.cells.ravel()[cell]
+            c = centres(g, cell)
+            distance = np.sqrt(((c - positions) ** 2).sum(axis=0))
+            ok &= distance < best_distance
+            if ok.any():
+                idx = np.flatnonzero(ok)
+                seen = ~segments_blocked(free, positions[:, idx], c[:, idx])
+                idx = idx[seen]
+                best[idx], best_distance[idx] = cell[idx], distance[idx]
+    return best
+
+
+def _cell_of(grid: Grid, positions: np.ndarray) -> np.ndarray:
+    """The flat cell of each position (:func:`harness.control.waypoints.cell_of`)."""
+    col = np.clip(((positions[0] - grid.x0) / grid.dx).astype(np.intp), 0, grid.nx - 1)
+    row = np.clip(((positions[1] - grid.y0) / grid.dy).astype(np.intp), 0, grid.ny - 1)
+    return row * grid.nx + col
