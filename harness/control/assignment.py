@@ -199,6 +199,8 @@ class AssignmentControl:
     needs_robots: ClassVar[bool] = True
     uses: ClassVar[str] = "positions, target cell masses"
     divides_by_density: ClassVar[bool] = False
+    # geodesic costs and paths (tests/test_ot_domains.py)
+    free_space: ClassVar[bool] = True
 
     def __init__(
         self,
