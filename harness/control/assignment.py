@@ -16,14 +16,29 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from harness.control.free_space import (
+    blocked,
+    centres,
+    points_in_free_cells,
+    segments_blocked,
+    visible_free_cells,
+)
+from harness.control.geodesic import Geodesics, Routes, geodesic_costs
 from harness.control.guidance import target_masses
-from harness.control.matching import DENSE_BYTES_PER_PAIR, EXACT_MAX, SPARSE_BYTES_PER_ROBOT, assign
-from harness.control.waypoints import PeriodClock, steer
+from harness.control.matching import (
+    DENSE_BYTES_PER_PAIR,
+    EXACT_MAX,
+    SPARSE_BYTES_PER_ROBOT,
+    assign,
+    assignment_of_cost,
+)
+from harness.control.waypoints import PeriodClock, cell_of, steer
 from harness.grid import Grid
 from harness.parameters import integer, number, speed_cap
 from harness.protocols import MemoryEstimate, default_memory
 from harness.records import Command, ControlInput
 from harness.targets.densities import Target
+from harness.velocity import VelocityField
 
 SEED_STREAM = 5
 """The law's random stream: ``np.random.default_rng([seed, 5])``."""
@@ -122,6 +137,26 @@ class AssignmentControl:
     Inputs: the robots' positions at the start of each period and the time; no
     estimate, no density in a denominator.
 
+    Free space (``target.free``, a domain with obstacles). The points are drawn in the
+    free part of their cells (a point the quantisation puts in an obstacle, or cut off
+    from its cell's centre, is drawn again there,
+    :func:`harness.control.free_space.points_in_free_cells`); the cost is geodesic,
+
+        c_ij = max(D(cell of x_i, cell of y_j), |x_i - y_j|)^2,
+
+    ``D`` the shortest path between the cells' centres on the graph of free cells
+    joined through open faces and free diagonals (:mod:`harness.control.geodesic`, at
+    most 8.2 % above the straight distance where nothing is in the way), exact by the
+    dense simplex (:func:`~harness.control.matching.assignment_of_cost`; at most
+    :data:`~harness.control.matching.EXACT_MAX` robots); and each robot follows its
+    shortest path, a polyline through the cells' centres, by the period's end
+    (:class:`harness.control.geodesic.Routes`), never the straight line through an
+    obstacle. A robot starts its way from the nearest free cell whose centre it sees
+    (:func:`harness.control.free_space.visible_free_cells`). What changes at the fixed
+    point: nothing in the points; the assignment is optimal for the geodesic cost, so
+    the displacement interpolation's no-collision argument above (which needs the
+    squared Euclidean cost) does not carry over.
+
     Stability and steady state. Without noise and with a cap that allows it, the
     robots sit on their points from the end of the first period on, and the assignment
     of the next period is the identity (the robots already at the points: cost 0), so
@@ -164,6 +199,8 @@ class AssignmentControl:
     needs_robots: ClassVar[bool] = True
     uses: ClassVar[str] = "positions, target cell masses"
     divides_by_density: ClassVar[bool] = False
+    # geodesic costs and paths (tests/test_ot_domains.py)
+    free_space: ClassVar[bool] = True
 
     def __init__(
         self,
@@ -184,6 +221,22 @@ class AssignmentControl:
         self.points = quantise(self.grid, target_masses(target), self.robots, rng)
         self.clock = PeriodClock(self.period)
         self.assignment: np.ndarray | None = None
+        self.free = target.free
+        if self.free is not None:
+            if self.robots > EXACT_MAX:
+                raise ValueError(
+                    f"control=ot on a domain with obstacles assigns at most {EXACT_MAX} "
+                    f"robots (dense geodesic costs), got {self.robots}"
+                )
+            cells = cell_of(self.grid, self.points)
+            # points in an obstacle's part of a free cell, or cut off from its centre
+            bad = blocked(self.free, self.points) | segments_blocked(
+                self.free, centres(self.grid, cells), self.points
+            )
+            self.points[:, bad] = points_in_free_cells(self.free, cells[bad], rng)
+            self.point_cells = cells
+            self.geodesics = Geodesics(self.free, cells)
+            self.routes: Routes | None = None
 
     @classmethod
     def memory_estimate(cls, grid: Grid, robots: Any = 1, **params: Any) -> MemoryEstimate:
@@ -217,12 +270,36 @@ class AssignmentControl:
         starts = self.clock.tick(inp.t)
         if self.clock.restarted:
             self.assignment = None
+        if self.free is not None:
+            return self.on_free_space(positions, starts, inp.t)
         if starts or self.assignment is None:
             x = np.ascontiguousarray(positions.T)
             y = np.ascontiguousarray(self.points.T)
             self.assignment = assign(self.grid, x, y, self.assignment)
         goals = self.points[:, self.assignment]
         return steer(self.grid, positions, goals, self.clock.time_left(inp.t), self.v_max)
+
+    def on_free_space(self, positions: np.ndarray, starts: bool, t: float) -> Command:
+        """The command on a domain with obstacles (the class docstring): at a period's
+        start the assignment for the geodesic costs
+        (:func:`harness.control.geodesic.geodesic_costs`) and each robot's way along its
+        shortest path (:class:`harness.control.geodesic.Routes`); every step the
+        velocity along it.
+        """
+        assert self.free is not None
+        if starts or self.assignment is None or self.routes is None:
+            here = visible_free_cells(self.free, positions)
+            cost = geodesic_costs(self.geodesics, positions, here, self.points, self.point_cells)
+            self.assignment = assignment_of_cost(cost)
+            self.routes = Routes(
+                self.geodesics,
+                positions,
+                here,
+                self.points[:, self.assignment],
+                self.point_cells[self.assignment],
+            )
+        u = self.routes.velocity(positions, self.clock.time_left(t), self.clock.step, self.v_max)
+        return Command(VelocityField.from_robots(self.grid, positions, u), u)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> None:
         """None: the law is no held velocity field of the estimate, so the sampled-data

@@ -36,6 +36,7 @@ from typing import ClassVar, Self
 import numpy as np
 
 from harness.control.own_estimates import own_velocities
+from harness.domains.base import FreeSpace
 from harness.estimators.smoothing import transfer
 from harness.grid import Grid
 from harness.records import Command, ControlInput
@@ -52,6 +53,34 @@ def check_gains(alpha: float, sigma: float) -> None:
         raise ValueError(f"control.alpha must be finite and >= 0, got {alpha}")
     if not (np.isfinite(sigma) and sigma >= 0):
         raise ValueError(f"dynamics.sigma must be finite and >= 0, got {sigma}")
+
+
+def no_flux_into_obstacles(v: VelocityField, free: FreeSpace | None) -> VelocityField:
+    """``v`` with no flux through an obstacle: centre values 0 on blocked cells and
+    face-normal values 0 on closed faces (``free.face_x``, ``free.face_y``); ``v``
+    itself when ``free`` is None (the plain rectangle).
+
+    The Fokker-Planck operator already carries no flux through a closed face
+    (:mod:`harness.fokker_planck`); this makes the command say so too, so that what is
+    logged and what robots interpolate near an obstacle carry no velocity inside it.
+    """
+    if free is None:
+        return v
+    return VelocityField(
+        np.where(free.cells, v.centres, 0.0),
+        np.where(free.face_x, v.face_x, 0.0),
+        np.where(free.face_y, v.face_y, 0.0),
+    )
+
+
+def positive_on_blocked(p: np.ndarray, free: FreeSpace | None) -> np.ndarray:
+    """``p`` with its blocked cells set to 1 (``p`` itself when ``free`` is None): a
+    target's cell values, 0 on blocked cells, made safe to divide by; the values there
+    are discarded by :func:`no_flux_into_obstacles`.
+    """
+    if free is None:
+        return p
+    return np.where(free.cells, p, 1.0)
 
 
 def grid_modes(grid: Grid, resolution: float | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -244,7 +273,8 @@ class FieldLaw:
 
         Raises:
             ValueError: for robots' own estimates given to a law without
-                ``own_estimates``, or without the robots' positions.
+                ``own_estimates``, without the robots' positions, or on a domain with
+                obstacles.
         """
         target, rate = self.moving_target(inp)
         law = self if target is None else self.at_target(target)
@@ -256,6 +286,11 @@ class FieldLaw:
         own = est.robots
         if own is None:
             return Command(v).capped(self.v_max)
+        if self.target.free is not None:
+            raise ValueError(
+                f"{type(self).__name__} moves robots by their own estimates on the square "
+                "only (their own gradients reflect at the rectangle's walls, not at obstacles)"
+            )
         if not self.own_estimates or inp.positions is None:
             raise ValueError(
                 f"{type(self).__name__} cannot move robots by their own estimates "

@@ -18,6 +18,18 @@ next cells all at once from per-cell cumulative rows over those 5 candidates
   the run's density estimate, which moves robots only out of cells the estimate says
   hold more than their target mass, and is the identity at the target.
 
+Free space (``target.free``, a domain with obstacles): the chains live on the graph of
+free cells joined through open faces (:func:`neighbour_table`): no candidate lies behind
+a closed face or in a blocked cell, and the target's masses ``v`` are 0 on blocked
+cells (:func:`target_masses`). Every statement below holds on that graph as on the
+grid's (the proofs use only the graph's edges and its degrees): ``v`` stays the exact
+stationary distribution of ``psg`` and the identity's of ``psg_feedback`` at the
+target (``tests/test_guidance_domains.py``). A robot in the free part of a blocked
+cell counts in the nearest free cell, and goals are drawn in the free part of a cell
+(:mod:`harness.control.free_space`). The way to a goal is a straight segment between
+points of neighbouring cells through an open face; where an obstacle clips it (a
+partly blocked cell) the robot reflects off it as off a wall (the plant).
+
 Both need robots (``needs_robots``): they have no mean-field form, so the mean-field plant
 refuses them and the agents plant carries the robots' histogram in place of an ``N ->
 infinity`` limit. Their commands are the robots' own velocities plus the swarm's mean
@@ -43,7 +55,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 
+from harness.control.free_space import nearest_free_cells, points_in_free_cells
 from harness.control.waypoints import PeriodClock, cell_of, points_in_cells, steer
+from harness.domains.base import FreeSpace
 from harness.estimators.smoothing import cell_masses, smoothed_target
 from harness.grid import Grid
 from harness.parameters import flag, integer, number, require, speed_cap
@@ -64,10 +78,12 @@ SEED_STREAM = 4
 2 are the run's others)."""
 
 
-def neighbour_table(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+def neighbour_table(grid: Grid, free: FreeSpace | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Each cell's candidates: ``(cells, exists)``, both ``(M, 5)`` for the grid's ``M``
     flat cells (C order): column 0 the cell itself, then its left, right, lower and upper
-    neighbour; a neighbour beyond a wall is the cell itself with ``exists`` false.
+    neighbour; a neighbour beyond a wall, or on free space ``free`` behind a closed face
+    (every face of a blocked cell is closed), is the cell itself with ``exists`` false:
+    the graph of free cells joined through open faces.
     """
     row, col = np.divmod(np.arange(grid.size), grid.nx)
     steps = ((0, 0), (0, -1), (0, 1), (-1, 0), (1, 0))
@@ -78,6 +94,15 @@ def neighbour_table(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
         ok = (r >= 0) & (r < grid.ny) & (c >= 0) & (c < grid.nx)
         exists[:, k] = ok
         cells[:, k] = np.where(ok, r * grid.nx + c, row * grid.nx + col)
+    if free is not None:
+        fx, fy = free.face_x.ravel(), free.face_y.ravel()
+        right = row * (grid.nx - 1) + col  # face_x between (row, col) and (row, col + 1)
+        exists[:, 1] &= fx[np.where(exists[:, 1], right - 1, 0)]
+        exists[:, 2] &= fx[np.where(exists[:, 2], right, 0)]
+        exists[:, 3] &= fy[np.where(exists[:, 3], (row - 1) * grid.nx + col, 0)]
+        exists[:, 4] &= fy[np.where(exists[:, 4], row * grid.nx + col, 0)]
+        itself = np.broadcast_to(np.arange(grid.size)[:, None], cells.shape)
+        cells = np.where(exists, cells, itself)
     return cells, exists
 
 
@@ -85,7 +110,8 @@ def target_masses(target: Target) -> np.ndarray:
     """The target's cell masses ``v`` (``(ny, nx)``, dimensionless, sum 1): exact for a
     density with closed-form cell masses (:func:`harness.estimators.smoothing.cell_masses`),
     else cell value times cell area; for a target given by cell values only, those
-    times the cell area.
+    times the cell area. On free space (``target.free``) 0 on blocked cells, the free
+    cells' masses renormalised to sum 1.
     """
     g = target.grid
     if target.density is None:
@@ -93,6 +119,8 @@ def target_masses(target: Target) -> np.ndarray:
     else:
         v = cell_masses(target.density, g)
     v = np.clip(v, 0.0, None)
+    if target.free is not None:
+        v = np.where(target.free.cells, v, 0.0)
     return v / v.sum()
 
 
@@ -177,6 +205,8 @@ class _Guidance:
     needs_robots: ClassVar[bool] = True
     uses: ClassVar[str] = "positions, target cell masses"
     divides_by_density: ClassVar[bool] = False
+    # chains on the graph of free cells (tests/test_guidance_domains.py)
+    free_space: ClassVar[bool] = True
 
     def __init__(self, target: Target, period: float, seed: int, v_max: float | None) -> None:
         self.target = target
@@ -184,7 +214,9 @@ class _Guidance:
         self.period = number("period", period, 0.0, strict=True)
         self.seed = integer("seed", seed, 0)
         self.v_max = speed_cap(v_max)
-        self.cells, self.exists = neighbour_table(self.grid)
+        self.free = target.free
+        self.cells, self.exists = neighbour_table(self.grid, self.free)
+        self._nearest = None if self.free is None else nearest_free_cells(self.free)
         self.clock = PeriodClock(self.period)
         self.rng = np.random.default_rng([self.seed, SEED_STREAM])
         self.goals: np.ndarray | None = None
@@ -208,14 +240,30 @@ class _Guidance:
         if self.clock.restarted:
             self.rng = np.random.default_rng([self.seed, SEED_STREAM])
         if starts or self.goals is None or self.goals.shape != positions.shape:
-            here = cell_of(self.grid, positions)
+            here = self.cell_of(positions)
             there = self.chain(inp)(here, self.rng)
             self.goals = self.goal_points(here, there)
         return steer(self.grid, positions, self.goals, self.clock.time_left(inp.t), self.v_max)
 
+    def cell_of(self, positions: np.ndarray) -> np.ndarray:
+        """The cell each robot counts in: its own, or on free space the nearest free
+        cell to its own when that is blocked
+        (:func:`harness.control.free_space.nearest_free_cells`).
+        """
+        here = cell_of(self.grid, positions)
+        return here if self._nearest is None else self._nearest[here]
+
+    def points(self, cells: np.ndarray) -> np.ndarray:
+        """A point drawn uniformly in each of ``cells``, ``(2, n)``; on free space in
+        the free part of the cell (:func:`harness.control.free_space.points_in_free_cells`).
+        """
+        if self.free is None:
+            return points_in_cells(self.grid, cells, self.rng)
+        return points_in_free_cells(self.free, cells, self.rng)
+
     def goal_points(self, here: np.ndarray, there: np.ndarray) -> np.ndarray:
         """A point drawn uniformly in each robot's next cell ``there``, ``(2, N)``."""
-        return points_in_cells(self.grid, there, self.rng)
+        return self.points(there)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> None:
         """None: the law is no held velocity field of the estimate, so the sampled-data
@@ -440,7 +488,8 @@ class FeedbackGuidance(_Guidance):
             (np.ones(int(edges.sum())), (source[edges], self.cells[edges])),
             shape=(self.grid.size, self.grid.size),
         )
-        self._uniform = self.exists[:, 1:] / self.exists[:, 1:].sum(axis=1, keepdims=True)
+        degree = self.exists[:, 1:].sum(axis=1, keepdims=True)  # 0: a cell shut in
+        self._uniform = self.exists[:, 1:] / np.maximum(degree, 1)
 
     def toward_deficits(self, deficit: np.ndarray) -> np.ndarray:
         """Per cell, ``(M, 4)`` weights over its neighbours: uniform over those one hop
@@ -480,6 +529,8 @@ class FeedbackGuidance(_Guidance):
         leave = np.zeros_like(m)
         np.divide(self.gain * excess, m, out=leave, where=excess > 0)
         leave = np.minimum(leave, 1.0)
+        if self.free is not None:  # a free cell with no open face keeps its robots
+            leave = np.where(self.exists[:, 1:].any(axis=1), leave, 0.0)
         wanting = np.where(self.exists[:, 1:], deficit[self.cells[:, 1:]], 0.0)
         total = wanting.sum(axis=1, keepdims=True)
         has = total[:, 0] > 0
@@ -502,6 +553,6 @@ class FeedbackGuidance(_Guidance):
         """A uniform point of the next cell for a robot that moves; ``NaN`` (hold) for
         one that stays.
         """
-        goals = points_in_cells(self.grid, there, self.rng)
+        goals = self.points(there)
         goals[:, there == here] = np.nan
         return goals

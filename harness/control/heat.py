@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.control.field import FieldLaw, check_gains
+from harness.control.field import FieldLaw, check_gains, no_flux_into_obstacles
 from harness.control.paper import feedback_target, paper_law
 from harness.parameters import flag, number, speed_cap
 from harness.targets.densities import Target
@@ -42,6 +42,13 @@ def heat_law(
             default 0.1 is a tenth of the uniform density on the unit square.
         noise_compensation: Include the ``+sigma q_hat / p_hat`` term.
         feedback_target: Replaces ``p_*`` in the feedback term (the debiased law).
+
+    Free space (``target.free``): faces take the mean of their two centres where open
+    and 0 where closed, and centres are 0 on blocked cells
+    (:func:`harness.control.field.no_flux_into_obstacles`), so no flux crosses an
+    obstacle's face, as the Fokker-Planck operator has it. ``grad p_*`` reflects at
+    closed faces (:meth:`harness.domains.base.FreeSpace.gradient`), as do the
+    estimators' gradients; the law's fixed point is the rectangle's, on free space.
     """
     check_gains(alpha, sigma)
     if not density_floor > 0:
@@ -51,7 +58,7 @@ def heat_law(
     centres = -alpha * (q_hat - f.grad) / denom
     if noise_compensation:
         centres = centres + sigma * q_hat / denom
-    return VelocityField.from_centres(centres)
+    return no_flux_into_obstacles(VelocityField.from_centres(centres), target.free)
 
 
 class HeatControl(FieldLaw):
@@ -78,6 +85,8 @@ class HeatControl(FieldLaw):
             ``grad p_*`` in the feedback term).
         v_max: Speed cap (length / s), or None.
     """
+
+    free_space = True  # no flux through closed faces (tests/test_field_laws_domains.py)
 
     divides_by_density = True
 
@@ -167,6 +176,8 @@ class LangevinControl(FieldLaw):
         sigma: The robots' noise intensity ``>= 0`` (length^2 / s).
         v_max: Speed cap (length / s), or None.
     """
+
+    free_space = True  # no flux through closed faces (tests/test_field_laws_domains.py)
 
     uses = "target score"
 

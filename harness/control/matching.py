@@ -107,7 +107,17 @@ def exact_assignment(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     n = x.shape[0]
     if n <= 1:
         return np.zeros(n, dtype=np.intp)
-    cost = squared_distances(x, y)
+    return assignment_of_cost(squared_distances(x, y))
+
+
+def assignment_of_cost(cost: np.ndarray) -> np.ndarray:
+    """The optimal assignment for the cost matrix ``cost`` ``(n, n)`` (robot ``i`` at
+    point ``perm[i]`` minimising ``sum_i cost[i, perm_i]``), by the dense network simplex
+    with the exact fallback of :func:`exact_assignment`.
+    """
+    n = cost.shape[0]
+    if n <= 1:
+        return np.zeros(n, dtype=np.intp)
     ones = np.ones(n)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # non-optimal exit: checked below

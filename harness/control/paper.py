@@ -14,7 +14,12 @@ from __future__ import annotations
 import numpy as np
 
 from harness.compiled.control import paper_velocity
-from harness.control.field import FieldLaw, check_gains
+from harness.control.field import (
+    FieldLaw,
+    check_gains,
+    no_flux_into_obstacles,
+    positive_on_blocked,
+)
 from harness.estimators.smoothing import smoothed_target
 from harness.parameters import flag, number, speed_cap
 from harness.targets.densities import Target
@@ -52,6 +57,16 @@ def paper_law(
     ``feedback_target`` (default ``target``) replaces ``p_*`` in the feedback term only;
     the debiased law passes the smoothed target ``K_h * p_*`` there (see
     :class:`PaperControl`).
+
+    Free space (``target.free``, a domain with obstacles). The same statements on the
+    free cells and open faces; centre values are 0 on blocked cells and face values 0
+    on closed faces (:func:`harness.control.field.no_flux_into_obstacles`), where the
+    Fokker-Planck operator carries no flux either. ``target.grad`` is
+    :meth:`harness.domains.base.FreeSpace.gradient` (a closed face reflects as a
+    wall does), so with ``p_hat = p_*`` and ``q_hat = free.gradient(p_*)`` the
+    feedback term is 0 on every free cell (the two products are the same numbers),
+    and the face drift makes every open face's flux of ``p_*`` vanish: ``p_*`` is the
+    exact discrete steady state on the masked grid, as on the rectangle.
     """
     check_gains(alpha, sigma)
     g = target.grid
@@ -62,12 +77,13 @@ def paper_law(
             f"estimates of shapes {p_hat.shape} and {q_hat.shape} do not fit the grid "
             f"{g.shape} (p_hat (ny, nx), q_hat (2, ny, nx))"
         )
+    free = target.free
     centres, face_x, face_y = paper_velocity(
         np.ascontiguousarray(p_hat, dtype=float), np.ascontiguousarray(q_hat, dtype=float),
-        f.p, f.grad, target.p, target.grad, target.log_p,
-        float(alpha), float(sigma), g.dx, g.dy,
+        positive_on_blocked(f.p, free), f.grad, positive_on_blocked(target.p, free),
+        target.grad, target.log_p, float(alpha), float(sigma), g.dx, g.dy,
     )  # fmt: skip
-    return VelocityField(centres, face_x, face_y)
+    return no_flux_into_obstacles(VelocityField(centres, face_x, face_y), free)
 
 
 def paper_law_reference(
@@ -84,12 +100,14 @@ def paper_law_reference(
     check_gains(alpha, sigma)
     g = target.grid
     f = target if feedback_target is None else feedback_target
-    feedback = -alpha * (f.p * q_hat - p_hat * f.grad) / f.p**2
-    drift = sigma * target.grad / target.p
+    free = target.free
+    fp, tp = positive_on_blocked(f.p, free), positive_on_blocked(target.p, free)
+    feedback = -alpha * (fp * q_hat - p_hat * f.grad) / fp**2
+    drift = sigma * target.grad / tp
     centres = feedback + drift
     face_x = centres_to_face_x(feedback[0]) + sigma * np.diff(target.log_p, axis=1) / g.dx
     face_y = centres_to_face_y(feedback[1]) + sigma * np.diff(target.log_p, axis=0) / g.dy
-    return VelocityField(centres, face_x, face_y)
+    return no_flux_into_obstacles(VelocityField(centres, face_x, face_y), free)
 
 
 class PaperControl(FieldLaw):
@@ -148,6 +166,8 @@ class PaperControl(FieldLaw):
         feedforward: Add the feedforward ``w`` for a moving target (no effect on a
             static one).
     """
+
+    free_space = True  # no flux through closed faces, p_* kept (tests/test_field_laws_domains.py)
 
     def __init__(
         self,
@@ -284,7 +304,11 @@ class PaperControl(FieldLaw):
         ``div(alpha p grad(p / p~_*))`` of local diffusivity ``alpha p / p~_*``
         (``p~_* = p_*`` without debiasing).
         """
-        return self.alpha * float(np.max(p0 / self.feedback_target.p))
+        f = self.feedback_target
+        if self.target.free is None:
+            return self.alpha * float(np.max(p0 / f.p))
+        cells = self.target.free.cells  # the feedback acts on free cells only
+        return self.alpha * float(np.max(p0[cells] / f.p[cells]))
 
 
 def feedback_target(target: Target, debias: bool, bandwidth: float | None, mirror: bool) -> Target:
