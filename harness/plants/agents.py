@@ -368,7 +368,7 @@ class Agents:
         side = min(grid.x1 - grid.x0, grid.y1 - grid.y0)
         require(h <= side, "bandwidth", bandwidth, f"at most the domain side {side:g}")
         require(method in KDE.METHODS, "method", method, f"one of {', '.join(KDE.METHODS)}")
-        self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method)
+        self.kde = KDE(grid, h, mirror=flag("mirror", mirror), method=method, free=model.free)
         self.obstacles = RobotMap.of(getattr(model, "free", None))
         self.swarm: Swarm | None = None
         self.resolution: float | None = h  # the KDE resolves no scale below h

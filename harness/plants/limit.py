@@ -60,7 +60,7 @@ class Limit:
             control, "for the N -> infinity limit of a run with robots (it moves by the field)"
         )
         self.grid, self.model, self.init, self.control = grid, model, init, control
-        self.smoother = Smoother(grid, bandwidth, mirror)
+        self.smoother = Smoother(grid, bandwidth, mirror, free=model.free)
         self.density = initial_density(init, grid, getattr(model, "free", None))
         self.t = 0.0
 
