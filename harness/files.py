@@ -21,6 +21,9 @@ import os
 import stat
 from pathlib import Path
 
+SMALL_FILE_BYTES = 1 << 20
+"""Largest status, run or lock file of a sweep read (bytes): each holds a few hundred."""
+
 
 class UnreadableFile(OSError):
     """A file that is not a regular file, is larger than allowed, cannot be read or does

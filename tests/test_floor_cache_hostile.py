@@ -320,3 +320,31 @@ def test_a_run_never_logs_poisoned_floors_from_the_cache(tmp_path, compose, smok
     a, b, c = (load_run(tmp_path / d).metadata["theory"] for d in "abc")
     assert (b["swarm_floor_source"], c["swarm_floor_source"]) == ("computed", "cache")
     assert without_source(a) == without_source(b) == without_source(c)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test_a_sweep_s_status_run_and_lock_files_are_read_without_blocking(tmp_path, kind):
+    """A FIFO or /dev/zero in place of a job's ``job_status.json``, the sweep's run file
+    or its lock is read as malformed (empty, 0), never opened blocking or read whole."""
+
+    from harness.runs.status import STATUS_FILE, read_status
+    from harness.runs.supervision import _lock_holder
+    from harness.runs.sweep_progress import RUN_FILE, read_run
+
+    paths = [tmp_path / STATUS_FILE, tmp_path / RUN_FILE, tmp_path / "lock"]
+    for path in paths:
+        if kind == "fifo":
+            os.mkfifo(path)
+        else:
+            path.symlink_to("/dev/zero")
+    result: list[object] = []
+    reader = threading.Thread(
+        target=lambda: result.extend(
+            [read_status(tmp_path), read_run(tmp_path), _lock_holder(paths[2])]
+        ),
+        daemon=True,
+    )
+    reader.start()
+    reader.join(timeout=10)
+    assert not reader.is_alive(), "a reader blocked"
+    assert result == [{}, {}, 0]

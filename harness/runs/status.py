@@ -26,6 +26,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from harness.files import SMALL_FILE_BYTES, read_text
 from harness.observers.log import LOG_FILE
 from harness.runs.resume import log_status
 
@@ -45,7 +46,7 @@ TABLE_FIELDS = ("job", "dir", "overrides", "state", "runs", "wall_s", "reason", 
 def read_status(job_dir: Path) -> dict[str, Any]:
     """The job's ``job_status.json`` (empty dict when absent, unreadable or malformed)."""
     try:
-        data = json.loads((job_dir / STATUS_FILE).read_text())
+        data = json.loads(read_text(job_dir / STATUS_FILE, SMALL_FILE_BYTES))
         return data if isinstance(data, dict) else {}
     except (OSError, ValueError, UnicodeDecodeError):
         return {}

@@ -33,6 +33,7 @@ from typing import Any, TextIO
 
 import numba
 
+from harness.files import SMALL_FILE_BYTES, read_text
 from harness.loop import Experiment
 from harness.runs.checks import ConfigError
 from harness.runs.run import Terminated, run
@@ -126,7 +127,7 @@ def claim_run_dir(out: Path) -> None:
 def _lock_holder(lock: Path) -> int:
     """The process id in a lock file (0 when unreadable)."""
     try:
-        return int(lock.read_text().strip() or "0")
+        return int(read_text(lock, SMALL_FILE_BYTES).strip() or "0")
     except (OSError, ValueError):
         return 0
 

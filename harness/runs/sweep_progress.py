@@ -51,6 +51,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+from harness.files import SMALL_FILE_BYTES, read_text
+
 RUN_FILE = ".sweep_run"
 """The file in the sweep directory naming the sweep that runs there (JSON: ``id``, and
 ``tty``, whether its progress line is on a terminal)."""
@@ -299,7 +301,7 @@ def read_run(sweep_dir: Path) -> dict[str, Any]:
     when none is recorded or the file is unreadable.
     """
     try:
-        data = json.loads((Path(sweep_dir) / RUN_FILE).read_text())
+        data = json.loads(read_text(Path(sweep_dir) / RUN_FILE, SMALL_FILE_BYTES))
     except (OSError, ValueError, UnicodeDecodeError):
         return {}
     return data if isinstance(data, dict) and isinstance(data.get("id"), str) else {}
@@ -439,7 +441,7 @@ class SweepMonitor:
             if time.time() - st.st_mtime < SETTLE_S:
                 key = (-1, 0, 0)  # not settled: read it again next time
             try:
-                status = json.loads(path.read_text())
+                status = json.loads(read_text(path, SMALL_FILE_BYTES))
             except (OSError, ValueError, UnicodeDecodeError):
                 continue  # being replaced: read it next time
             if isinstance(status, dict):
