@@ -19,7 +19,9 @@ ALPHA, SIGMA = 5e-3, 5e-4
 
 DOMAINS = {
     "rooms": Rooms(),
-    "shut_rooms": Rooms(door=(0.5, 0.5001)),  # two components
+    "shut_rooms": Obstacles(
+        polygons=[[[0.47, 0.0], [0.53, 0.0], [0.53, 1.0], [0.47, 1.0]]]
+    ),  # a wall: two components
     "obstacles": Obstacles(
         discs=[{"center": [0.5, 0.5], "radius": 0.15}],
         polygons=[[[0.1, 0.7], [0.3, 0.7], [0.3, 0.8], [0.1, 0.8]]],

@@ -78,7 +78,7 @@ def test_the_kernel_does_not_leak_through_a_thin_wall(rng):
     # a wall of a quarter bandwidth with no door: the Gaussian with images puts
     # exp(-(0.01)^2 / (2 h^2)) ~ 97 % of a peak across it; diffusion puts nothing
     grid = Grid.square(64)
-    free = Rooms(thickness=0.02, door=(0.0, 1e-6)).resolve(grid)
+    free = Obstacles(polygons=[[[0.49, 0.0], [0.51, 0.0], [0.51, 1.0], [0.49, 1.0]]]).resolve(grid)
     assert free.n_components == 2
     left = rng.uniform([0.40, 0.2], [0.485, 0.8], size=(400, 2)).T
     p, _ = KDE(grid, H, free=free)(left)

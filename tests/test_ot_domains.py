@@ -23,7 +23,7 @@ DOMAINS = {
         discs=[{"center": [0.5, 0.5], "radius": 0.15}],
         polygons=[[[0.1, 0.7], [0.3, 0.7], [0.3, 0.8], [0.1, 0.8]]],
     ),
-    "shut_rooms": Rooms(door=(0.5, 0.5001)),
+    "shut_rooms": Obstacles(polygons=[[[0.47, 0.0], [0.53, 0.0], [0.53, 1.0], [0.47, 1.0]]]),
 }
 
 
