@@ -13,11 +13,11 @@ it, for a grid of ``nx x ny`` cells of side ``dx, dy``:
   face itself (``s`` points, at the centres of an ``s``-split of it: a corner touching
   an obstacle does not close it) is free. A wall thinner than a cell but thicker than
   ``h / s`` closes the faces it crosses, so no flux leaks through it.
-* **Components** (:meth:`Domain.components`): the connected components of the graph
+* **Components** (:func:`components`): the connected components of the graph
   of free cells joined through open faces (``scipy.sparse.csgraph``).
 * **Raster** (:meth:`Domain.raster`): whether each of ``r x r`` squares of side ``L /
   r`` (``r = resolution``) has its centre blocked, the map the robots' compiled
-  kernels look up at every move (:mod:`harness.domains.raster`).
+  kernels look up at every move (:mod:`harness.plants.obstacles`).
 
 What this costs: ``s^2`` calls of :meth:`Domain.blocked` per cell (about ``2 s``
 more per face) once when the run is built, and ``r^2`` for the raster: at the

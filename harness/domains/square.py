@@ -18,7 +18,7 @@ class Square(Domain):
 
     @property
     def trivial(self) -> bool:
-        """Always: the plain square."""
+        """Whether the domain has no obstacle (always so for the plain square)."""
         return True
 
     def blocked(self, x: np.ndarray, y: np.ndarray, length: float) -> np.ndarray:

@@ -100,7 +100,7 @@ class FieldMetrics:
         grid, target, control: Run-time arguments.
         sigma: The robots' noise intensity (length^2 / s), for ``rate_exact``.
         estimator: The run's estimator (run-time argument): what this observer gives
-            at every step (:attr:`gives`) depends on it. None (an observer built alone):
+            at every step (``gives``) depends on it. None (an observer built alone):
             every field metric.
     """
 

@@ -117,7 +117,7 @@ class Motion:
         plant: The plant (run-time argument), whose ``tracking_error`` and
             ``command_age`` are reported when it has them.
         estimator: The run's estimator (run-time argument). What this observer gives at
-            every step (:attr:`gives`): the motion metrics, and ``command_disagreement``
+            every step (``gives``): the motion metrics, and ``command_disagreement``
             when the estimator's estimates carry the centralised reference
             (:func:`harness.protocols.carries`). The plant's numbers come only from its
             first move on (None at the start), so they are never promised at every step.
