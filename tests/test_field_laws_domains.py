@@ -8,25 +8,13 @@ import pytest
 
 from harness.control.heat import HeatControl, LangevinControl
 from harness.control.paper import PaperControl, paper_law, paper_law_reference
-from harness.domains.obstacles import Obstacles
-from harness.domains.rooms import Rooms
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.protocols import on_free_space
 from harness.targets.densities import DEFAULT_TARGET, Target
+from tests.domain_cases import DOMAINS
 
 ALPHA, SIGMA = 5e-3, 5e-4
-
-DOMAINS = {
-    "rooms": Rooms(),
-    "shut_rooms": Obstacles(
-        polygons=[[[0.47, 0.0], [0.53, 0.0], [0.53, 1.0], [0.47, 1.0]]]
-    ),  # a wall: two components
-    "obstacles": Obstacles(
-        discs=[{"center": [0.5, 0.5], "radius": 0.15}],
-        polygons=[[[0.1, 0.7], [0.3, 0.7], [0.3, 0.8], [0.1, 0.8]]],
-    ),
-}
 
 
 def laws(target):

@@ -9,7 +9,6 @@ import pytest
 import scipy.fft as sfft
 
 from harness.domains.base import FreeSpace, components
-from harness.domains.obstacles import Obstacles
 from harness.domains.rooms import Rooms
 from harness.estimators.diffusion import gradient_matrix
 from harness.estimators.filters.common import (
@@ -27,20 +26,10 @@ from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
 from harness.parameters import ParameterError
 from harness.velocity import VelocityField
+from tests.domain_cases import DOMAINS
 
 H = 0.04
 SIGMA = 5e-4
-
-DOMAINS = {
-    "rooms": Rooms(),
-    "shut_rooms": Obstacles(
-        polygons=[[[0.47, 0.0], [0.53, 0.0], [0.53, 1.0], [0.47, 1.0]]]
-    ),  # a wall: two components
-    "obstacles": Obstacles(
-        discs=[{"center": [0.5, 0.5], "radius": 0.15}],
-        polygons=[[[0.1, 0.7], [0.3, 0.7], [0.3, 0.8], [0.1, 0.8]]],
-    ),
-}
 
 
 def open_square(grid):

@@ -8,23 +8,14 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from harness.domains.obstacles import Obstacles
 from harness.domains.rooms import Rooms
 from harness.domains.square import Square
 from harness.fokker_planck import FokkerPlanck, rate
 from harness.grid import Grid
 from harness.velocity import VelocityField
+from tests.domain_cases import DOMAINS
 
 SIGMA = 5e-4
-
-DOMAINS = {
-    "rooms": Rooms(),
-    "shut_rooms": Obstacles(polygons=[[[0.47, 0.0], [0.53, 0.0], [0.53, 1.0], [0.47, 1.0]]]),
-    "obstacles": Obstacles(
-        discs=[{"center": [0.5, 0.5], "radius": 0.15}],
-        polygons=[[[0.1, 0.7], [0.3, 0.7], [0.3, 0.8], [0.1, 0.8]]],
-    ),
-}
 
 
 def random_velocity(grid, rng, scale):

@@ -7,23 +7,11 @@ import pytest
 
 from harness.control.free_space import blocked
 from harness.control.guidance import FeedbackGuidance, MetropolisGuidance
-from harness.domains.obstacles import Obstacles
-from harness.domains.rooms import Rooms
 from harness.grid import Grid
 from harness.protocols import on_free_space
 from harness.records import ControlInput, Estimate
 from harness.targets.densities import DEFAULT_TARGET, Target
-
-DOMAINS = {
-    "rooms": Rooms(),
-    "shut_rooms": Obstacles(
-        polygons=[[[0.47, 0.0], [0.53, 0.0], [0.53, 1.0], [0.47, 1.0]]]
-    ),  # a wall: two components
-    "obstacles": Obstacles(
-        discs=[{"center": [0.5, 0.5], "radius": 0.15}],
-        polygons=[[[0.1, 0.7], [0.3, 0.7], [0.3, 0.8], [0.1, 0.8]]],
-    ),
-}
+from tests.domain_cases import DOMAINS
 
 
 def open_pairs(free):
