@@ -159,16 +159,17 @@ def png_problem(data: bytes) -> str:
     """What makes ``data`` other than a whole PNG file a viewer can show, in words (empty
     when nothing does).
 
-    In order: the signature; chunks each of a length that fits in the file and a
-    matching CRC-32; ``IHDR`` first (13 bytes: a width and height from 1 to
-    :data:`MAX_SIDE`, at most :data:`MAX_FIGURE_PIXELS` pixels, a colour type with one
-    of its allowed bit depths, compression and filter methods 0, interlace 0 or 1);
-    ``PLTE`` before the pixels of a palette image; the ``IDAT`` chunks consecutive;
-    ``IEND`` last with nothing after it. Then the ``IDAT`` data must inflate
-    (:func:`pixels_problem`) to exactly the scanlines ``IHDR`` declares, each with a
-    known filter type, so a damaged stream under recomputed CRCs is found too. Last,
-    Pillow (matplotlib's reader of PNG files) must decode it. Nothing is inflated or
-    decoded before the declared image is known to be within the pixel budget.
+    In order: the signature; at most :data:`MAX_CHUNKS` chunks, each of a length that
+    fits in the file and a matching CRC-32; ``IHDR`` first (13 bytes: a width and height
+    from 1 to :data:`MAX_SIDE`, a colour type with one of its allowed bit depths,
+    compression and filter methods 0, interlace 0 or 1); every later chunk one libpng
+    reads (:func:`chunk_problem`); ``PLTE`` before the pixels of a palette image; the
+    ``IDAT`` chunks consecutive; ``IEND`` last with nothing after it. Then the ``IDAT``
+    data must inflate (:func:`pixels_problem`) to exactly the scanlines ``IHDR``
+    declares, each with a known filter type, so a damaged stream under recomputed CRCs
+    is found too. Last, Pillow (matplotlib's reader of PNG files) must decode it.
+    Nothing is inflated or decoded before the declared image is known to be within the
+    pixel budget.
     """
     if not data.startswith(PNG_SIGNATURE):
         return "no PNG signature"
@@ -176,6 +177,8 @@ def png_problem(data: bytes) -> str:
     stream: list[bytes] = []
     kinds: list[bytes] = []
     while True:
+        if len(kinds) >= MAX_CHUNKS:
+            return f"more than {MAX_CHUNKS} chunks"
         if at + 12 > len(data):
             return f"cut short at byte {at} (no IEND chunk)"
         length, kind = struct.unpack(">I4s", data[at : at + 8])
@@ -192,6 +195,10 @@ def png_problem(data: bytes) -> str:
             if problem:
                 return problem
             header = body
+        else:
+            problem = chunk_problem(kind, body, header, kinds)
+            if problem:
+                return f"{problem} (chunk at byte {at})"
         if kind == b"IDAT":
             if stream and kinds[-1] != b"IDAT":
                 return "its IDAT chunks are not consecutive"
@@ -209,10 +216,51 @@ def png_problem(data: bytes) -> str:
     return pixels_problem(header, b"".join(stream)) or decoder_problem(data)
 
 
-MAX_SIDE = 0x7FFFFFFF
-"""Largest width or height a PNG may declare (the format's own limit)."""
+def chunk_problem(kind: bytes, body: bytes, header: bytes, before: list[bytes]) -> str:
+    """What libpng would refuse in a chunk after ``IHDR``, in words (empty when nothing).
 
-MAX_FIGURE_PIXELS = 1 << 24
+    The chunk type is four ASCII letters; a critical chunk (first letter upper case) is
+    one of ``IHDR``, ``PLTE``, ``IDAT``, ``IEND``, and ``IHDR`` comes only first; ``PLTE``
+    comes at most once, before the pixels, never in a grey image, with 1 to
+    ``2^depth`` (at most 256) entries of 3 bytes.
+
+    Args:
+        kind: The chunk's type (4 bytes).
+        body: The chunk's data.
+        header: The 13-byte ``IHDR`` body, already checked.
+        before: The types of the chunks before it, in order.
+    """
+    if not all(65 <= c <= 90 or 97 <= c <= 122 for c in kind):
+        return f"a chunk type {kind!r} that is not four ASCII letters"
+    if kind[0] <= 90 and kind not in CRITICAL:
+        return f"an unknown critical chunk {kind.decode()}"
+    if kind == b"IHDR":
+        return "a second IHDR"
+    if kind == b"PLTE":
+        depth, colour = header[8], header[9]
+        entries = min(256, 1 << depth) if colour == 3 else 256
+        if b"PLTE" in before:
+            return "a second PLTE"
+        if b"IDAT" in before:
+            return "a PLTE after the pixels"
+        if colour in (0, 4):
+            return "a PLTE in a grey image"
+        if not body or len(body) % 3 or len(body) // 3 > entries:
+            return f"a PLTE of {len(body)} bytes (PNG allows 3 to {3 * entries} in steps of 3)"
+    return ""
+
+
+CRITICAL = (b"IHDR", b"PLTE", b"IDAT", b"IEND")
+"""The critical chunk types PNG defines; a viewer refuses any other critical chunk."""
+
+MAX_CHUNKS = 1 << 14
+"""Most chunks read from one PNG: a 64 MiB figure in 8 KiB IDATs has 8192; bounds the
+time spent on a file of millions of tiny chunks."""
+
+MAX_SIDE = 4096
+"""Largest width or height accepted (pixels; libpng's own default limit is 10^6)."""
+
+MAX_FIGURE_PIXELS = MAX_SIDE * MAX_SIDE
 """Largest figure accepted (pixels): about 16.8 million, 4096 x 4096; a study's figure
 has about 1.5 million. Bounds what inflating and decoding one may allocate."""
 
@@ -238,9 +286,7 @@ def header_problem(header: bytes) -> str:
     """What is wrong with a 13-byte ``IHDR`` body (empty when nothing is)."""
     width, height, depth, colour, compression, method, interlace = struct.unpack(">IIBBBBB", header)
     if not (0 < width <= MAX_SIDE and 0 < height <= MAX_SIDE):
-        return f"an image of {width} x {height} pixels"
-    if width * height > MAX_FIGURE_PIXELS:
-        return f"an image of {width} x {height} pixels, more than the {MAX_FIGURE_PIXELS} allowed"
+        return f"an image of {width} x {height} pixels (each side 1 to {MAX_SIDE} allowed)"
     if depth not in DEPTHS.get(colour, ()):
         return (
             f"IHDR declares colour type {colour} with bit depth {depth}, which PNG does not allow"

@@ -142,7 +142,24 @@ def test_the_shipped_mask_loads_and_its_aisles_connect():
     assert 0.6 < free.free_area < 0.95 and free.n_components == 1
 
 
-@pytest.mark.parametrize("kind", ["missing", "text", "fifo", "jpeg", "huge", "directory"])
+def _bomb_png(path):
+    """A small PNG whose IHDR declares 2^31 - 1 x 2^31 - 1 pixels (Pillow's own limit,
+    checked before the mask's, calls it a decompression bomb)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        crc = zlib.crc32(kind + body)
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", crc)
+
+    header = struct.pack(">IIBBBBB", 2**31 - 1, 2**31 - 1, 8, 0, 0, 0, 0)
+    idat = zlib.compress(b"\0" * 64)
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+    )
+
+
+@pytest.mark.parametrize("kind", ["missing", "text", "fifo", "jpeg", "huge", "directory", "bomb"])
 def test_a_mask_that_is_not_a_readable_png_is_refused_naming_path(tmp_path, kind):
     path = tmp_path / "mask.png"
     if kind == "text":
@@ -155,6 +172,8 @@ def test_a_mask_that_is_not_a_readable_png_is_refused_naming_path(tmp_path, kind
         Image.new("1", (5000, 5000)).save(path)  # small file, 25 M pixels
     elif kind == "directory":
         path.mkdir()
+    elif kind == "bomb":
+        _bomb_png(path)
     with pytest.raises(ParameterError) as err:
         Mask(path=str(path))
     assert err.value.name == "path" and "\n" not in str(err.value)

@@ -490,3 +490,17 @@ def test_every_combination_of_options_runs_or_is_refused_in_one_line(tmp_path, c
     for i, (e, c, t, s) in enumerate(combos):
         overrides = [f"plant={plant}", f"estimator={e}", f"control={c}", f"target={t}", f"init={s}"]
         runs_or_is_refused(compose, [*overrides, *TINY], tmp_path / f"{i}")
+
+
+# ------------------------------------------- a refused combination names its options
+@pytest.mark.parametrize(
+    "overrides, line",
+    [
+        (["estimator=distributed", "control=svgd"], "control='svgd'"),
+        (["estimator=distributed", "plant=meanfield"], "plant='meanfield'"),
+        (["target=moving", "control=ot"], "control='ot'"),
+    ],
+)
+def test_a_refused_combination_names_the_option_chosen_not_its_class(refusal, overrides, line):
+    got = refusal([*TINY, *overrides])
+    assert got is not None and got.startswith(f"invalid config: {line}: "), got

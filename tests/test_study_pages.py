@@ -357,9 +357,9 @@ def test_a_valid_interlaced_png_is_accepted():
         (_plain(4, 4, 4, 2, 6), "bit depth 4"),  # RGB of 4 bits
         (_plain(4, 4, 8, 0, 4, method=1), "filter method 1"),
         (_plain(4, 4, 8, 0, 4, split=True, between=_chunk(b"tEXt", b"a\0b")), "not consecutive"),
-        (_png((0x7FFFFFFF, 0x7FFFFFFF, 16, 6, 0, 0, 0), b"\0" * 100), "more than the"),
+        (_png((0x7FFFFFFF, 0x7FFFFFFF, 16, 6, 0, 0, 0), b"\0" * 100), "each side"),
         (_png((0xFFFFFFFF, 0xFFFFFFFF, 8, 0, 0, 0, 0), b"\0" * 100), "pixels"),
-        (_png((65536, 81920, 8, 0, 0, 0, 0), b"\0" * 1000), "more than the"),
+        (_png((65536, 81920, 8, 0, 0, 0, 0), b"\0" * 1000), "each side"),
     ],
     ids=["interlaced-bad-filter", "palette-depth-16", "rgb-depth-4", "filter-method-1",
          "idat-not-consecutive", "huge-dimensions", "dimensions-beyond-png", "bomb"],
@@ -375,6 +375,95 @@ def test_a_png_no_decoder_shows_is_refused_before_anything_is_inflated(data, why
         tracemalloc.stop()
     assert why in problem, problem
     assert peak < 20e6, f"{peak / 1e6:.0f} MB to check a PNG of {len(data)} bytes"
+
+
+def _with_chunk(chunk: bytes, data: bytes | None = None, at: int = 33) -> bytes:
+    """``data`` (a 4 x 4 grey PNG by default) with ``chunk`` inserted at byte ``at``
+    (33: right after IHDR)."""
+    data = _plain(4, 4, 8, 0, 4) if data is None else data
+    return data[:at] + chunk + data[at:]
+
+
+PALETTE_4X4 = _plain(4, 4, 8, 3, 4)
+"""A 4 x 4 palette image whose PLTE (16 entries) follows IHDR."""
+
+
+def _libpng_problem(data: bytes) -> str | None:
+    """What libpng 1.6's simplified reader says of ``data`` (empty when it reads the whole
+    image), or None when the system has no libpng16."""
+    import ctypes
+    import ctypes.util
+
+    name = ctypes.util.find_library("png16")
+    if name is None:
+        return None
+
+    class Image(ctypes.Structure):  # png_image of png.h, version 1
+        _fields_ = [
+            ("opaque", ctypes.c_void_p),
+            ("version", ctypes.c_uint32),
+            ("width", ctypes.c_uint32),
+            ("height", ctypes.c_uint32),
+            ("format", ctypes.c_uint32),
+            ("flags", ctypes.c_uint32),
+            ("colormap_entries", ctypes.c_uint32),
+            ("warning_or_error", ctypes.c_uint32),
+            ("message", ctypes.c_char * 64),
+        ]
+
+    lib = ctypes.CDLL(name)
+    image = Image(version=1)
+    buffer = ctypes.create_string_buffer(data, len(data))
+    pointer = ctypes.byref(image)
+    if not lib.png_image_begin_read_from_memory(pointer, buffer, ctypes.c_size_t(len(data))):
+        return image.message.decode(errors="replace") or "refused"
+    image.format = 3  # RGBA, 8 bits a sample
+    out = ctypes.create_string_buffer(4 * image.width * image.height)
+    ok = lib.png_image_finish_read(pointer, None, out, 0, None)
+    message = image.message.decode(errors="replace")
+    lib.png_image_free(pointer)
+    return "" if ok and not image.warning_or_error & 2 else message or "refused"
+
+
+LIBPNG_REFUSES = [
+    (_with_chunk(_chunk(b"ABCD", b"x")), "unknown critical chunk ABCD"),
+    (_with_chunk(_chunk(b"a1b2", b"x")), "not four ASCII letters"),
+    (_with_chunk(_chunk(b"ab d", b"x")), "not four ASCII letters"),
+    (_with_chunk(_chunk(b"IHDR", struct.pack(">IIBBBBB", 4, 4, 8, 0, 0, 0, 0))), "a second IHDR"),
+    (_with_chunk(_chunk(b"PLTE", bytes(48)), PALETTE_4X4), "a second PLTE"),
+    (PALETTE_4X4[:33] + _chunk(b"PLTE", bytes(47)) + PALETTE_4X4[33 + 60 :], "47 bytes"),
+    (PALETTE_4X4[:33] + _chunk(b"PLTE", b"") + PALETTE_4X4[33 + 60 :], "0 bytes"),
+    (PALETTE_4X4[:33] + _chunk(b"PLTE", bytes(900)) + PALETTE_4X4[33 + 60 :], "900 bytes"),
+    (_png((1000001, 1, 8, 0, 0, 0, 0), b"\0" * 100), "each side"),
+    (_png((1, 1000001, 8, 0, 0, 0, 0), b"\0" * 100), "each side"),
+]
+"""PNG files Pillow decodes but libpng, the reader of most viewers, refuses, with what
+:func:`png_problem` says of each."""
+
+
+@pytest.mark.parametrize("data, why", LIBPNG_REFUSES, ids=[
+    "critical-unknown", "name-digits", "name-space", "ihdr-twice", "plte-twice",
+    "plte-not-3", "plte-empty", "plte-over-256", "wide", "tall",
+])  # fmt: skip
+def test_a_png_libpng_refuses_is_refused_though_pillow_shows_it(data, why):
+    assert why in png_problem(data), png_problem(data)
+
+
+def test_libpng_refuses_the_forged_pngs_and_reads_the_good_ones():
+    """The witness for the cases above: libpng itself (skipped without libpng16)."""
+    if _libpng_problem(_plain(4, 4, 8, 0, 4)) is None:
+        pytest.skip("no libpng16 on this system")
+    assert _libpng_problem(_plain(4, 4, 8, 0, 4)) == ""
+    assert _libpng_problem(PALETTE_4X4) == ""
+    assert _libpng_problem((DOCS / "sweeps" / "link.png").read_bytes()) == ""
+    for data, why in LIBPNG_REFUSES:
+        assert _libpng_problem(data), why
+
+
+def test_a_png_of_many_tiny_chunks_is_refused_quickly():
+    data = _plain(4, 4, 8, 0, 4)
+    many = data[:33] + _chunk(b"tEXt", b"a\0b") * 20000 + data[33:]
+    assert "more than 16384 chunks" in png_problem(many)
 
 
 def test_the_idat_rebuilder_keeps_a_good_png_good():

@@ -91,6 +91,10 @@ def _read_mask(key: str, file: Path, threshold: float) -> np.ndarray:
             grey = np.asarray(image.convert("L"), dtype=float) / 255.0
     except ParameterError:
         raise
+    except Image.DecompressionBombError:
+        raise ParameterError(
+            key, str(file), f"an image of 2 to {MAX_PIXELS} pixels (it declares far more)"
+        ) from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as err:
         raise ParameterError(key, str(file), f"a PNG image ({type(err).__name__})") from None
     return grey >= threshold

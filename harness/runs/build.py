@@ -437,26 +437,33 @@ def resolve(cfg: DictConfig) -> dict[str, Any]:
     return resolved(cfg)
 
 
-def _check_parts(plant: Plant, estimator: Estimator, control: Control) -> None:
+def _refused(cfg: DictConfig, err: Incompatible) -> ConfigError:
+    """``err`` as the config error a user reads: a config group's value is the option
+    chosen in it (``control=svgd``), not the class it built; a key keeps its value.
+    """
+    return ConfigError(err.name, choices(cfg).get(err.name, err.value), err.allowed)
+
+
+def _check_parts(cfg: DictConfig, plant: Plant, estimator: Estimator, control: Control) -> None:
     """Each component's own ``check`` of the others (:func:`harness.protocols.check_parts`),
-    refused naming the config group.
+    refused naming the config group and its option.
     """
     try:
         check_parts(plant, estimator, control)
     except Incompatible as err:
-        raise ConfigError(err.name, err.value, err.allowed) from None
+        raise _refused(cfg, err) from None
 
 
 def _limit(
-    plant: Plant, control: Control, grid: Grid, model: FokkerPlanck, init: Density
+    cfg: DictConfig, plant: Plant, control: Control, grid: Grid, model: FokkerPlanck, init: Density
 ) -> Limit | None:
     """The loop's ``N -> infinity`` limit (:meth:`harness.plants.limit.Limit.of`), refused
-    naming ``control`` for a law it cannot follow.
+    naming ``control`` and its option for a law it cannot follow.
     """
     try:
         return Limit.of(plant, control, grid, model, init)
     except Incompatible as err:
-        raise ConfigError(err.name, err.value, err.allowed) from None
+        raise _refused(cfg, err) from None
 
 
 def _on_path(cfg: DictConfig, density: Density, grid: Grid) -> Density:
@@ -518,14 +525,14 @@ def _check_period(cfg: DictConfig, control: Control) -> None:
         raise ConfigError(public_key(cfg, "control", "period"), err.value, err.allowed) from None
 
 
-def _check_follows(target: Target, control: Control) -> None:
+def _check_follows(cfg: DictConfig, target: Target, control: Control) -> None:
     """Refuse a law that cannot follow a moving target
     (:func:`harness.protocols.follows_moving_target`) when the target moves.
     """
     if moves(target) and not follows_moving_target(control):
         raise ConfigError(
             "control",
-            type(control).__name__,
+            choices(cfg).get("control", type(control).__name__),
             "a law that follows a moving target p_*(t) (paper, heat, langevin) with target=moving",
         )
 
@@ -561,13 +568,13 @@ def build(cfg: DictConfig) -> Experiment:
         check_reachable(free, target, init_cells)
     model = FokkerPlanck(grid, float(cfg.dynamics.sigma), free=free)
     control = component(cfg, "control", data, target=target)
-    _check_follows(target, control)
+    _check_follows(cfg, target, control)
     plant = component(cfg, "plant", data, grid=grid, model=model, init=init)
     estimator = component(cfg, "estimator", data, grid=grid, model=model)
     parts = {"plant": plant, "estimator": estimator, "control": control}
     check_free_space(cfg, free, target, parts)
-    _check_parts(plant, estimator, control)
-    limit = _limit(plant, control, grid, model, init)
+    _check_parts(cfg, plant, estimator, control)
+    limit = _limit(cfg, plant, control, grid, model, init)
     check_built(cfg, grid, target, control, plant, estimator)
     _check_copies(cfg, {"plant": plant, "estimator": estimator, "control": control})
     _check_period(cfg, control)
