@@ -12,8 +12,9 @@
 
 Each loop has a numpy, sparse or LAPACK statement, named in its docstring, that tests
 compare against. Loops are compiled on first use and cached on disk next to their
-module. A loop run serially on small inputs and in parallel on large ones has
-both builds in one :class:`SerialParallel`.
+module, keyed by the source of the whole package (:mod:`~harness.compiled.caching`). A
+loop run serially on small inputs and in parallel on large ones has both builds in one
+:class:`SerialParallel`.
 """
 
 from __future__ import annotations
@@ -30,7 +31,15 @@ from typing import Any
 # a few ms takes hundreds. Read when numba first starts its OpenMP layer.
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
+from pathlib import Path
+
 import numba
+
+from harness.compiled.caching import stamp_by_package
+
+# a loop's cache entry is keyed by every module of this package, not only its own: the
+# robots' steps call obstacles.avoid, which numba would not see change
+stamp_by_package(Path(__file__).parent)
 
 PARALLEL_MIN_CELLS = 1 << 16
 """Fewer cells (values, for several columns) run the serial build of the Jacobi series,
