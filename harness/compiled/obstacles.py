@@ -25,9 +25,8 @@ straight part of its path crosses a blocked square, so a robot never enters an o
 of the map nor tunnels through one however long its step.
 
 The rule runs inside the compiled steps (:mod:`harness.compiled.agents`,
-:mod:`harness.compiled.robots`), which numba caches on disk keyed by their own module's
-source only: after editing this module, delete ``harness/compiled/__pycache__`` so they
-are compiled again with it.
+:mod:`harness.compiled.robots`); their disk cache is keyed by this module's source too
+(:mod:`harness.compiled.caching`).
 """
 
 from __future__ import annotations
