@@ -250,3 +250,22 @@ def test_a_target_in_a_component_no_robot_starts_in_is_refused(refusal):
 def test_a_door_narrower_than_a_cell_is_refused_on_the_command_line(refusal):
     line = refusal(["domain=rooms", "grid.n=12", "domain.door=[0.5,0.55]"])
     assert line is not None and line.startswith("invalid config: domain.door="), line
+
+
+def test_an_initial_density_inside_a_wall_is_refused_in_one_line(refusal):
+    """The box lies in the wall between the rooms, on cells whose centres are free: the
+    robots' map of obstacles decides, before anything runs."""
+    line = refusal(["domain=rooms", "grid.n=12", "agents.n=40", "init=paper_box",
+                    "init.x0=0.47", "init.x1=0.53", "init.y0=0.1", "init.y1=0.3"])  # fmt: skip
+    assert line is not None and line.startswith("invalid config: init="), line
+    assert "(it puts 0 there)" in line
+
+
+def test_a_target_with_only_round_off_in_free_space_is_refused(refusal):
+    """A bump inside a disc has a tail of ~1e-49 outside it and a floor of 1e-9:
+    renormalised, it would be another target."""
+    line = refusal(["domain=obstacles", "grid.n=12", "agents.n=40", "~domain.polygons",
+                    "domain.discs=[{center:[0.5,0.5],radius:0.3}]", "target.means=[[0.5,0.5]]",
+                    "target.weights=[1.0]", "target.stds=[0.02]", "target.floor=1e-9"])  # fmt: skip
+    assert line is not None and line.startswith("invalid config: target="), line
+    assert "at least 0.001 of its mass in free space" in line

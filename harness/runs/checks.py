@@ -306,13 +306,32 @@ def density_on_grid(key: str, density: Density, grid: Grid) -> np.ndarray:
     return p
 
 
+MIN_FREE_SHARE = 1e-3
+"""Least share of a target's or an initial density's mass that must lie in free space
+(dimensionless). Below it the density is, in all but round-off, inside obstacles:
+restricting it to free space would renormalise its tails into another density, and the
+robots' rejection sampler would need ``N / share`` draws."""
+
+
+def _free_share(p: np.ndarray, grid: Grid, free: np.ndarray) -> float:
+    """The share of the mass of ``p`` (on ``grid``) on the cells where ``free`` holds."""
+    total = grid.integrate(p)
+    return float(grid.integrate(np.where(free, p, 0.0)) / total) if total > 0 else 0.0
+
+
 def target_on_grid(density: Density, grid: Grid, free: FreeSpace | None = None) -> Target:
     """The target on the grid, restricted to ``free`` when given; refused unless
-    strictly positive there (on free space: with mass there).
+    strictly positive there (on free space: at least :data:`MIN_FREE_SHARE` of its
+    mass there).
     """
     p = density_on_grid("target", density, grid)
-    if free is not None and not grid.integrate(np.where(free.cells, p, 0.0)) > 0:
-        raise ConfigError("target", density, "a target with mass in free space (the domain's)")
+    if free is not None and not (share := _free_share(p, grid, free.cells)) >= MIN_FREE_SHARE:
+        raise ConfigError(
+            "target",
+            density,
+            f"a target with at least {MIN_FREE_SHARE:g} of its mass in free space "
+            f"(it puts {share:.3g} there)",
+        )
     try:
         return Target.from_density(grid, density, free)
     except ValueError as err:
@@ -320,11 +339,22 @@ def target_on_grid(density: Density, grid: Grid, free: FreeSpace | None = None) 
 
 
 def init_on_free_space(density: Density, grid: Grid, free: FreeSpace) -> None:
-    """Refuse an initial density with no mass on the free cells of ``free``."""
+    """Refuse an initial density with less than :data:`MIN_FREE_SHARE` of its mass on
+    the free cells of ``free`` (where the mean field starts) or on the free squares of
+    its raster (where the robots start: the density at the squares' centres).
+    """
     p = density_on_grid("init", density, grid)
-    if not grid.integrate(np.where(free.cells, p, 0.0)) > 0:
+    share = _free_share(p, grid, free.cells)
+    if share >= MIN_FREE_SHARE:
+        r = free.raster.shape[0]
+        squares = Grid(r, r, grid.x0, grid.x1, grid.y0, grid.y1)
+        share = _free_share(density.on_grid(squares), squares, free.raster == 0)
+    if not share >= MIN_FREE_SHARE:
         raise ConfigError(
-            "init", density, "an initial density with mass in free space (it is all in obstacles)"
+            "init",
+            density,
+            f"an initial density with at least {MIN_FREE_SHARE:g} of its mass in free space "
+            f"(it puts {share:.3g} there)",
         )
 
 
