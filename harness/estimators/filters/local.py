@@ -96,9 +96,10 @@ blocked cells), its correlations computed from those modes; the gradient is the
 free-space gradient and the gradient update's Poisson problem is solved by
 :class:`~harness.estimators.filters.poisson.FreePoisson` (conjugate gradients with a
 lagged banded Cholesky factor, the components' constants pinned) on every grid, then
-projected on the band (both states in one product with the band's modes). The auxiliary density ``x_g`` starts with the KDE's mass on each component (the
-gradient does not see it). The rectangle's fast paths (cosine transforms, the banded
-Cholesky, :class:`~harness.estimators.filters.poisson.BandPoisson`) are not used there.
+projected on the band (both states in one product with the band's modes). The
+auxiliary density ``x_g`` starts with the KDE's mass on each component (the gradient
+does not see it). The rectangle's fast paths (cosine transforms,
+:class:`~harness.estimators.filters.poisson.BandPoisson`) are not used there.
 
 Process noise ``Q = q dt k I`` (density) and ``q dt k_g I`` (gradient), as in the
 reference. The approximation error is measured, not assumed:
