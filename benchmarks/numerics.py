@@ -20,7 +20,13 @@ Figures (each against its target):
 * closed loop with both fast filters, N = 1024, dt = 0.01 (robots, KDE, filters,
   paper's law, Fokker-Planck truth): n = 30 >= 1000 steps/s, n = 64 >= 200,
   n = 128 >= 100, n = 256 >= 25; inverse median step time, median of three runs with
-  their range.
+  their range;
+* the same loop on the rooms (``domain=rooms init=left_room``: the KDE and the
+  filters on free space) against the square, n = 30, N = 1024: the rooms' steps per
+  second at least half the square's. The two loops run in turn in one process (square,
+  rooms, rooms, square, ...), so that a host that slows down during the benchmark slows
+  both alike; the figure is the median over rounds of each round's ratio, with the
+  range.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ import argparse
 import resource
 import subprocess
 import sys
+import time
 from functools import partial
 
 import numpy as np
@@ -149,6 +156,60 @@ def bench_closed_loop(quick: bool, repeats: int = 3) -> bool:
     return ok
 
 
+ROOMS_RATIO_TARGET = 0.5
+"""Least steps per second of the paper's loop on the rooms over the square's."""
+
+
+def loop_rate(overrides: list[str], steps: int, warmup: int = 20) -> float:
+    """Steps per second of the loop the app builds from ``overrides``: the inverse of the
+    median wall time of a step over ``steps`` steps after ``warmup`` (the compiled loops
+    are built and the filters' factors made then)."""
+    from harness.api import compose
+    from harness.loop import trajectory
+    from harness.runs.build import build
+
+    loop = trajectory(build(compose(overrides)), hold=True)
+    for _ in range(warmup):
+        next(loop)
+    times = np.empty(steps)
+    for i in range(steps):
+        t0 = time.perf_counter()
+        next(loop)
+        times[i] = time.perf_counter() - t0
+    return 1.0 / float(np.median(times))
+
+
+ROOMS = ["grid.n=30", "agents.n=1024", "domain=rooms", "init=left_room"]
+"""The paper's loop on the rooms, the swarm starting in the left room."""
+
+SQUARE = ["grid.n=30", "agents.n=1024"]
+"""The paper's loop on the square."""
+
+
+def bench_rooms(quick: bool, rounds: int = 4) -> bool:
+    """The paper's loop on the rooms against the square (module docstring): ``rounds``
+    rounds, each a square run and a rooms run in alternating order; the median of the
+    rounds' ratios against :data:`ROOMS_RATIO_TARGET`, each loop's median rate beside it.
+    """
+    print(
+        "Paper's loop on the rooms against the square, n = 30, N = 1024 (steps per second; "
+        f"{rounds} rounds alternating the two, range in brackets):"
+    )
+    steps = 150 if quick else 600
+    square, rooms = [], []
+    for k in range(rounds):
+        pair = (SQUARE, ROOMS) if k % 2 == 0 else (ROOMS, SQUARE)
+        rates = {id(o): loop_rate(o, steps) for o in pair}
+        square.append(rates[id(SQUARE)])
+        rooms.append(rates[id(ROOMS)])
+    ratio = np.array(rooms) / np.array(square)
+    for name, r in (("square", square), ("rooms", rooms)):
+        line(f"n = 30, N = 1024, {name} [{min(r):.0f} to {max(r):.0f}]", float(np.median(r)),
+             "steps/s", None, False)  # fmt: skip
+    name = f"rooms over square [{ratio.min():.2f} to {ratio.max():.2f}]"
+    return line(name, float(np.median(ratio)), "x", ROOMS_RATIO_TARGET, False)
+
+
 def main(argv: list[str] | None = None) -> bool:
     """Run every benchmark and print the figures against their targets."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -167,6 +228,7 @@ def main(argv: list[str] | None = None) -> bool:
     results.append(bench_kde_agents(args.quick))
     with threadpool_limits(1):
         results.append(bench_closed_loop(args.quick))
+        results.append(bench_rooms(args.quick))
     print("all targets met" if all(results) else "some targets MISSED")
     return all(results)
 

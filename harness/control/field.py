@@ -118,7 +118,11 @@ def grid_modes(grid: Grid, resolution: float | None = None) -> tuple[np.ndarray,
 
 
 def sampled_data_dt_bound(
-    grid: Grid, diffusivity: float, resolution: float | None = None, sigma: float = 0.0
+    grid: Grid,
+    diffusivity: float,
+    resolution: float | None = None,
+    sigma: float = 0.0,
+    free: FreeSpace | None = None,
 ) -> float:
     """Largest ``dt`` for which the held feedback is stable on every grid mode.
 
@@ -150,21 +154,94 @@ def sampled_data_dt_bound(
     (which is implicit and stable for every ``dt``): the robots receive the same held
     velocity.
 
+    On free space (``free``, a domain with obstacles) the cosine modes are not
+    eigenvectors and the bound is :func:`free_space_dt_bound`'s.
+
     Args:
         grid: The grid.
         diffusivity: ``D``, the largest feedback diffusivity (length^2 / s).
         resolution: The estimates' smallest resolved scale ``h`` (length), or None for
             grid resolution.
         sigma: The robots' noise intensity (length^2 / s).
+        free: Free space of a domain with obstacles; None for the rectangle.
 
     Returns:
         The bound in seconds.
     """
+    if free is not None:
+        return free_space_dt_bound(free, diffusivity, resolution, sigma)
     feedback, diffusion = grid_modes(grid, resolution)
     denominator = float(np.max(diffusivity * feedback - sigma * diffusion))
     if denominator <= 0:
         return float("inf")
     return 2.0 / denominator
+
+
+def free_space_dt_bound(
+    free: FreeSpace, diffusivity: float, resolution: float | None = None, sigma: float = 0.0
+) -> float:
+    """:func:`sampled_data_dt_bound` on free space: ``2 / m`` with ``m`` a proven upper
+    bound of the held feedback's eigenvalues less the robots' diffusion (``inf`` when
+    ``m <= 0``).
+
+    The linearised step on the free cells is ``(I + dt sigma L)^-1 (I - dt D F)``, with
+    ``L`` the diffusion (the five-point operator with no flux through closed faces) and
+    ``F`` the held feedback's operator. With exact estimates (``resolution`` None) the
+    command's face values are the means of its centre values, 0 on closed faces, and
+    the flux's divergence of those means is ``-G^T`` for the free-space gradient ``G``
+    (central differences, the cell itself behind a closed face): ``F = G^T G``. Both
+    ``F`` and ``L`` are symmetric positive semi-definite, so every eigenvalue of the
+    step is a Rayleigh quotient ``(1 - dt D f) / (1 + dt sigma l)`` of one vector, which
+    stays in ``[-1, 1]`` for every vector exactly when ``dt lambda_max(D F - sigma L) <=
+    2``. Along an axis the free cells fall into runs joined through open faces, and on a
+    run of ``k`` cells ``G`` is the rectangle's one-dimensional gradient, whose ``G^T
+    G`` has eigenvalues ``sin^2(pi a / k) / dx^2`` below the run's Laplacian's ``4
+    sin^2(pi a / (2 k)) / dx^2`` (``a < k``). So ``F <= L`` and ``lambda_max(F) <=
+    s_x / dx^2 + s_y / dy^2`` with ``s`` the largest ``sin^2(pi a / k)`` over the
+    axis's run lengths (1 when a run has an even length), and
+
+        lambda_max(D F - sigma L) <= max(D - sigma, 0) (s_x / dx^2 + s_y / dy^2).
+
+    With estimates smoothed at scale ``h`` the feedback acts through the gradient of
+    the kernel's diffusion for ``h^2 / 2`` (:mod:`harness.estimators.diffusion`): in the
+    continuum ``-Delta exp(h^2 Delta / 2)`` with the Neumann Laplacian of free space,
+    whose eigenvalues ``kappa^2 exp(-kappa^2 h^2 / 2)`` are at most ``2 / (e h^2)``
+    on every domain; the bound takes that, and no credit for the robots' diffusion
+    (``F`` need not commute with ``L`` there). Tests compare both with dense
+    eigen-solves of the discrete operators on masked grids.
+    """
+    g = free.grid
+    d = float(diffusivity)
+    if resolution is not None:
+        top = d * 2.0 / (np.e * float(resolution) ** 2)
+    else:
+        s_x = _largest_run_mode(_run_lengths(free.cells, free.face_x))
+        s_y = _largest_run_mode(_run_lengths(free.cells.T, free.face_y.T))
+        top = max(d - float(sigma), 0.0) * (s_x / g.dx**2 + s_y / g.dy**2)
+    if top <= 0.0:
+        return float("inf")
+    return 2.0 / top
+
+
+def _run_lengths(cells: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Lengths of the runs of free cells joined through open faces along each row of
+    ``cells`` (``(rows, n)``; ``faces`` ``(rows, n - 1)`` open faces between them, an
+    open face joining two free cells).
+    """
+    joined = np.zeros(cells.shape, dtype=bool)  # joined[r, i]: face (i - 1 | i) open
+    joined[:, 1:] = faces
+    start = cells & ~joined
+    run = np.cumsum(start.ravel())  # the run of each free cell, numbered from 1
+    return np.bincount(run[cells.ravel()])[1:]
+
+
+def _largest_run_mode(lengths: np.ndarray) -> float:
+    """``max sin^2(pi a / k)`` over ``0 <= a < k`` and the run lengths ``k`` given."""
+    best = 0.0
+    for k in np.unique(lengths):
+        a = np.arange(int(k))
+        best = max(best, float(np.max(np.sin(np.pi * a / k) ** 2)))
+    return best
 
 
 class FieldLaw:

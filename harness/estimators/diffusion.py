@@ -59,6 +59,7 @@ import scipy.sparse as sp
 from scipy.special import ive
 
 from harness.compiled.binning import free_binning
+from harness.compiled.diffusion import chebyshev_heat
 from harness.domains.base import FreeSpace, components
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid
@@ -156,6 +157,7 @@ class HeatKernel:
     time: float
     tol: float = HEAT_TOLERANCE
     matrix: sp.csr_matrix = field(init=False, repr=False)
+    stencil: np.ndarray | None = field(init=False, repr=False)
     coefficients: np.ndarray = field(init=False, repr=False)
     scale: float = field(init=False)
 
@@ -167,6 +169,7 @@ class HeatKernel:
         a = sp.csr_matrix((a.data.copy(), a.indices.copy(), a.indptr.copy()), shape=a.shape)
         a.eliminate_zeros()  # the closed faces' zero entries
         self.matrix = a
+        self.stencil = five_point_stencil(a, grid.nx) if grid.nx >= 2 else None
         spread = 2.0 * float(np.max(-a.diagonal(), initial=0.0))  # Lambda
         self.scale = 2.0 / spread if spread > 0 else 0.0
         z = 0.5 * self.time * spread
@@ -178,7 +181,22 @@ class HeatKernel:
         return int(self.coefficients.size - 1)
 
     def __call__(self, f: np.ndarray) -> np.ndarray:
-        """``exp(t A) f`` for ``f`` of shape ``(M,)`` or ``(M, c)``."""
+        """``exp(t A) f`` for ``f`` of shape ``(M,)`` or ``(M, c)``: the compiled
+        recurrence (:func:`harness.compiled.diffusion.chebyshev_heat`) on each column,
+        equal to :meth:`reference` to round-off (the reference itself on a grid of one
+        cell per row).
+        """
+        f = np.asarray(f, dtype=float)
+        nx, s, c = self.free.grid.nx, self.scale, self.coefficients
+        if self.stencil is None:  # one cell per row: no five-point layout
+            return self.reference(f)
+        if f.ndim == 1:
+            return chebyshev_heat(np.ascontiguousarray(f), self.stencil, nx, s, c)
+        columns = [chebyshev_heat(np.ascontiguousarray(col), self.stencil, nx, s, c) for col in f.T]
+        return np.stack(columns, axis=1) if columns else np.empty_like(f)
+
+    def reference(self, f: np.ndarray) -> np.ndarray:
+        """The plain statement of :meth:`__call__`: the recurrence with sparse products."""
         f = np.asarray(f, dtype=float)
         c = self.coefficients
         out = c[0] * f
@@ -193,6 +211,29 @@ class HeatKernel:
             out += c[k] * nxt
             prev, cur = cur, nxt
         return out
+
+
+def five_point_stencil(a: sp.csr_matrix, nx: int) -> np.ndarray:
+    """``(5, M)`` the rows of a five-point operator ``a`` on a grid of ``nx`` cells per
+    row: the weights of cells ``i - nx``, ``i - 1``, ``i``, ``i + 1``, ``i + nx`` (the CSR
+    column order), 0 where ``a`` has no entry.
+
+    Raises:
+        ValueError: ``a`` has an entry off those five diagonals, or ``nx < 2`` (the
+            offsets ``-1`` and ``-nx`` would coincide).
+    """
+    if nx < 2:
+        raise ValueError(f"five-point stencil needs nx >= 2, got {nx}")
+    coo = a.tocoo()
+    offset = coo.col.astype(np.int64) - coo.row.astype(np.int64)
+    slot = np.full(offset.shape, -1)
+    for k, off in enumerate((-nx, -1, 0, 1, nx)):
+        slot[offset == off] = k
+    if (slot < 0).any():
+        raise ValueError("operator has entries off the five-point stencil")
+    out = np.zeros((5, a.shape[0]))
+    np.add.at(out, (slot, coo.row), coo.data)
+    return out
 
 
 def chebyshev_exp(z: float, tol: float = HEAT_TOLERANCE) -> np.ndarray:

@@ -411,7 +411,7 @@ def check_built(
         return
     own = getattr(control, "resolution", None)
     h = own if isinstance(own, float) else resolution(plant, estimator)
-    bound = sampled_data_dt_bound(grid, float(diffusivity), h, cfg.dynamics.sigma)
+    bound = sampled_data_dt_bound(grid, float(diffusivity), h, cfg.dynamics.sigma, target.free)
     if cfg.sim.dt > bound:
         scale = "grid resolution" if h is None else f"resolution {h:g}"
         raise ConfigError(

@@ -95,10 +95,11 @@ keeps its mass in the prediction); the band is :class:`~harness.estimators.filte
 blocked cells), its correlations computed from those modes; the gradient is the
 free-space gradient and the gradient update's Poisson problem is solved by
 :class:`~harness.estimators.filters.poisson.FreePoisson` (conjugate gradients with a
-lagged sparse LU, the components' constants pinned) on every grid, then projected on the
-band. The auxiliary density ``x_g`` starts with the KDE's mass on each component (the
-gradient does not see it). The rectangle's fast paths (cosine transforms, the banded
-Cholesky, :class:`~harness.estimators.filters.poisson.BandPoisson`) are not used there.
+lagged banded Cholesky factor, the components' constants pinned) on every grid, then
+projected on the band (both states in one product with the band's modes). The
+auxiliary density ``x_g`` starts with the KDE's mass on each component (the gradient
+does not see it). The rectangle's fast paths (cosine transforms,
+:class:`~harness.estimators.filters.poisson.BandPoisson`) are not used there.
 
 Process noise ``Q = q dt k I`` (density) and ``q dt k_g I`` (gradient), as in the
 reference. The approximation error is measured, not assumed:
@@ -297,14 +298,19 @@ class LocalFilters:
         # correlations are not carried into it)
         r = self.measurement.density_variance(p_kde)
         self.d = 1.0 / (1.0 / d + 1.0 / r)
-        self.x = self.band(x + self.d / r * (np.asarray(p_kde).ravel() - x))
+        x_post = x + self.d / r * (np.asarray(p_kde).ravel() - x)
+        if self.free is None:
+            self.x = self.band(x_post)
         # gradient update: information adds, mean by the weighted Poisson solve
         w_g = 1.0 / self.measurement.gradient_variance(p_kde)
         self.c_g = c_g + w_g
         innovation = np.asarray(grad_kde).ravel() - self.poisson.g @ x_g
-        self.x_g = self.band(
-            x_g + self._gradient_solve(self.c_g, self.poisson.gt @ (w_g * innovation))
-        )
+        x_g_post = x_g + self._gradient_solve(self.c_g, self.poisson.gt @ (w_g * innovation))
+        if self.free is None:
+            self.x_g = self.band(x_g_post)
+        else:  # both states through the free band's modes in one product
+            both = self.band(np.column_stack([x_post, x_g_post]))
+            self.x, self.x_g = both[:, 0].copy(), both[:, 1].copy()
         return self.estimates
 
     def _constants(self, p_kde: np.ndarray) -> np.ndarray | float:
