@@ -13,6 +13,7 @@ from harness.control.paper import PaperControl, paper_law
 from harness.estimators.distributed.estimator import RobotEstimators
 from harness.estimators.distributed.free_space import (
     FreeBandMessages,
+    FreeGradients,
     FreeGridMessages,
     FreeRobotKernels,
 )
@@ -113,6 +114,16 @@ def test_messages_carry_free_cells_only_and_band_consensus_is_the_band_projectio
     on_coef = band.fields(mix(band.coefficients(fields)))
     on_fields = pi((w @ fields).T).T  # consensus on the fields, then the band's projector
     np.testing.assert_allclose(on_coef, on_fields, atol=1e-12 * abs(fields).max())
+
+
+@pytest.mark.parametrize("name", DOMAINS)
+def test_each_robots_gradient_is_the_free_space_gradient_of_its_estimate(name, rng):
+    g = Grid.square(30)
+    free = DOMAINS[name].resolve(g)
+    p_hat = np.where(free.cells.ravel(), rng.random((7, g.size)), 0.0)
+    got = FreeGradients(free)(p_hat)
+    expected = np.stack([free.gradient(p.reshape(g.shape)).ravel() for p in p_hat])
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * abs(expected).max())
 
 
 def _brute_line_of_sight(free, a, b, samples=4000):

@@ -15,11 +15,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from harness.domains.base import FreeSpace
-from harness.estimators.diffusion import gradient_matrix
 from harness.estimators.distributed.consensus import DynamicAverageConsensus, message_counts
 from harness.estimators.distributed.design import Design
 from harness.estimators.distributed.filters import RobotFilters
-from harness.estimators.distributed.free_space import FREE_MESSAGES, FreeRobotKernels
+from harness.estimators.distributed.free_space import (
+    FREE_MESSAGES,
+    FreeGradients,
+    FreeRobotKernels,
+)
 from harness.estimators.distributed.graph import algebraic_connectivity, communication_graph
 from harness.estimators.distributed.messages import Messages
 from harness.estimators.distributed.metrics import FIELD_NAMES, NETWORK_KEYS, network_figures
@@ -369,7 +372,7 @@ class DistributedEstimator:
             self.central = LocalEngine(grid, model.sigma, dt, measurement)
         else:
             self.central = LocalEngine(grid, model.sigma, dt, measurement, free=self.free)
-            self._gradient = gradient_matrix(self.free)
+            self._gradients = FreeGradients(self.free)
         self._steps = 0
         self._connectivity = float("nan")
 
@@ -423,7 +426,7 @@ class DistributedEstimator:
             q_mean = grid_gradient(g, p_mean, self.order)  # linear: the robots' mean
         else:  # each robot's free-space gradient of its own estimate, and their mean
             q_mean = self.free.gradient(p_mean)
-            q_hat = np.ascontiguousarray((self._gradient @ est.p_hat.T).T)
+            q_hat = self._gradients(est.p_hat)
         return Estimate(
             p_mean, q_mean, *self.central.traces,
             robots=RobotEstimates(est.p_hat, q_hat, np.ravel(p_central), self.order),
