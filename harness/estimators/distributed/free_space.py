@@ -167,8 +167,9 @@ class FreeGradients:
         north[:-1, :] = np.where(free.face_y, idx[1:, :], idx[:-1, :])
         south[1:, :] = np.where(free.face_y, idx[:-1, :], idx[1:, :])
         on = free.cells
-        self._args = tuple(np.ascontiguousarray(a[on], dtype=np.int64)
-                           for a in (idx, east, west, north, south))  # fmt: skip
+        self._cells, self._east, self._west, self._north, self._south = (
+            np.ascontiguousarray(a[on], dtype=np.int64) for a in (idx, east, west, north, south)
+        )
         self._out: np.ndarray | None = None
 
     def __call__(self, p_hat: np.ndarray) -> np.ndarray:
@@ -177,7 +178,8 @@ class FreeGradients:
         shape = (p.shape[0], 2 * self.grid.size)
         if self._out is None or self._out.shape != shape:
             self._out = np.zeros(shape)
-        _free_gradients(p, *self._args, self.grid.dx, self.grid.dy, self._out)
+        _free_gradients(p, self._cells, self._east, self._west, self._north, self._south,
+                        self.grid.dx, self.grid.dy, self._out)  # fmt: skip
         return self._out
 
 
