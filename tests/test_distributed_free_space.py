@@ -246,11 +246,14 @@ def test_line_of_sight_changes_the_graph_on_rooms_and_not_the_square(smoke):
 
 
 @pytest.mark.parametrize(
-    ("override", "key"),
-    [("estimator.gradient=fourth_order", "estimator.gradient="),
-     ("estimator.through_walls=3", "estimator.through_walls=")],
+    ("override", "key", "allowed"),
+    [("estimator.gradient=fourth_order", "estimator.gradient=", "grid on a domain with obstacles"),
+     ("estimator.through_walls=3", "estimator.through_walls=", "true or false")],
 )  # fmt: skip
-def test_a_decentralised_option_that_does_not_hold_on_free_space_is_refused(refusal, override, key):
+def test_a_decentralised_option_that_does_not_hold_on_free_space_is_refused(
+    refusal, override, key, allowed
+):
     line = refusal(["domain=rooms", "init=left_room", "grid.n=12", "agents.n=40",
                     "estimator=distributed", override])  # fmt: skip
     assert line is not None and line.startswith(f"invalid config: {key}"), line
+    assert allowed in line, line
