@@ -35,7 +35,7 @@ from typing import ClassVar, Self
 
 import numpy as np
 
-from harness.control.own_estimates import own_velocities
+from harness.control.own_estimates import CellLaw, own_velocities
 from harness.domains.base import FreeSpace
 from harness.estimators.smoothing import transfer
 from harness.grid import Grid
@@ -71,6 +71,24 @@ def no_flux_into_obstacles(v: VelocityField, free: FreeSpace | None) -> Velocity
         np.where(free.face_x, v.face_x, 0.0),
         np.where(free.face_y, v.face_y, 0.0),
     )
+
+
+def _free_cells_only(at_cells: CellLaw, free: FreeSpace) -> CellLaw:
+    """A law's cell values (``at_cells``) with 0 on blocked cells, as
+    :func:`no_flux_into_obstacles` sets the centres of its field: what a robot's own
+    velocity interpolates near an obstacle.
+    """
+    on = free.cells.ravel()
+
+    def values(
+        p: np.ndarray, qx: np.ndarray, qy: np.ndarray, cells: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        with np.errstate(divide="ignore", invalid="ignore"):  # p_* = 0 on blocked cells
+            vx, vy = at_cells(p, qx, qy, cells)
+        inside = on[cells]
+        return np.where(inside, vx, 0.0), np.where(inside, vy, 0.0)
+
+    return values
 
 
 def positive_on_blocked(p: np.ndarray, free: FreeSpace | None) -> np.ndarray:
@@ -351,7 +369,7 @@ class FieldLaw:
         Raises:
             ValueError: for robots' own estimates given to a law without
                 ``own_estimates``, without the robots' positions, or on a domain with
-                obstacles.
+                obstacles without their own gradient estimates.
         """
         target, rate = self.moving_target(inp)
         law = self if target is None else self.at_target(target)
@@ -363,10 +381,12 @@ class FieldLaw:
         own = est.robots
         if own is None:
             return Command(v).capped(self.v_max)
-        if self.target.free is not None:
+        free = self.target.free
+        if free is not None and own.q_hat is None:
             raise ValueError(
-                f"{type(self).__name__} moves robots by their own estimates on the square "
-                "only (their own gradients reflect at the rectangle's walls, not at obstacles)"
+                f"{type(self).__name__} moves robots by their own estimates on a domain with "
+                "obstacles only with their own gradients (central differences reflect at "
+                "the rectangle's walls, not at obstacles)"
             )
         if not self.own_estimates or inp.positions is None:
             raise ValueError(
@@ -374,11 +394,18 @@ class FieldLaw:
                 "(it has no at_cells of its own, or the plant has no robots)"
             )
         grid = self.target.grid
-        robots = own_velocities(grid, law.at_cells, own.p_hat, inp.positions, own.q_hat, own.order)
+        cell_law = law.at_cells if free is None else _free_cells_only(law.at_cells, free)
+        robots = own_velocities(grid, cell_law, own.p_hat, inp.positions, own.q_hat, own.order)
         reference = None
         if own.reference is not None:  # every robot holding the reference's estimate
             shared = np.broadcast_to(own.reference, own.p_hat.shape)
-            reference = own_velocities(grid, law.at_cells, shared, inp.positions, order=own.order)
+            q_shared = None
+            if free is not None:  # the reference's free-space gradient, for every robot
+                q_ref = free.gradient(np.reshape(own.reference, grid.shape)).ravel()
+                q_shared = np.broadcast_to(q_ref, (own.p_hat.shape[0], q_ref.size))
+            reference = own_velocities(
+                grid, cell_law, shared, inp.positions, q_shared, order=own.order
+            )
         if ff is not None:
             drift = interpolate(grid, ff.centres, inp.positions)
             robots = robots + drift

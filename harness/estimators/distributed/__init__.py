@@ -26,6 +26,11 @@ own position, :func:`harness.control.own_estimates.own_velocities`; the robots' 
   :mod:`~harness.estimators.distributed.density` (the density step, compiled over robots) and
   :mod:`~harness.estimators.distributed.row_solver` (one sparse LU over robots);
 * :mod:`~harness.estimators.distributed.metrics`: the estimates' spread and the network figures;
+* :mod:`~harness.estimators.distributed.free_space`: on a domain with obstacles, each robot's
+  kernel (the free-space heat kernel's column at its position), the messages of free cells
+  or of the masked Laplacian's band, and each robot's free-space gradient;
+* :mod:`~harness.estimators.distributed.walls`: radio links through obstacles, or only with a
+  line of sight;
 * :mod:`~harness.estimators.distributed.estimator`: the assembly, and ``estimator=distributed``
   (:class:`DistributedEstimator`).
 """

@@ -39,6 +39,7 @@ robots (with a broadcast medium one transmission per exchange would do).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from typing import Protocol
 
 import numpy as np
 import scipy.sparse as sp
@@ -47,6 +48,20 @@ from harness.estimators.distributed.messages import GridMessages, KernelFactors,
 from harness.estimators.distributed.mixing import Mixer, mixer
 from harness.estimators.distributed.robot_kde import kernel_factors
 from harness.grid import Grid
+
+
+class RobotKernels(Protocol):
+    """The robots' kernels other than the square's separable ones (on free space,
+    :class:`harness.estimators.distributed.free_space.FreeRobotKernels`).
+    """
+
+    def __call__(self, positions: np.ndarray) -> KernelFactors:
+        """What the messages need of the robots' kernels at ``positions`` ``(2, N)``."""
+        ...
+
+    def kde(self, factors: KernelFactors) -> tuple[np.ndarray, np.ndarray]:
+        """The centralised KDE the kernels average to, ``(p, grad p)``."""
+        ...
 
 
 class ConsensusForm(ABC):
@@ -307,6 +322,9 @@ class DynamicAverageConsensus:
         form: The form (default :class:`FirstOrder`).
         messages: What a message carries (default grid fields,
             :class:`~harness.estimators.distributed.messages.GridMessages`).
+        kernels: The robots' kernels (default the square's Gaussian with wall images,
+            :func:`~harness.estimators.distributed.robot_kde.kernel_factors`; on free
+            space :class:`~harness.estimators.distributed.free_space.FreeRobotKernels`).
     """
 
     def __init__(
@@ -319,6 +337,7 @@ class DynamicAverageConsensus:
         chunk: int = 64,
         form: ConsensusForm | None = None,
         messages: Messages | None = None,
+        kernels: RobotKernels | None = None,
     ) -> None:
         if rounds < 1:
             raise ValueError(f"consensus rounds must be >= 1, got {rounds}")
@@ -330,6 +349,7 @@ class DynamicAverageConsensus:
         self.initial_rounds, self.chunk = initial_rounds, int(chunk)
         self.form = FirstOrder() if form is None else form
         self.messages = GridMessages(grid) if messages is None else messages
+        self.kernels = kernels
         self.columns = self.messages.size
         self.z: np.ndarray | None = None
         self.w: np.ndarray | None = None
@@ -366,12 +386,20 @@ class DynamicAverageConsensus:
         """
         self.form.run(self, self.mixer(w, positions), rounds, delta)
 
+    def _kernel_factors(self, positions: np.ndarray) -> KernelFactors:
+        """The robots' kernels at ``positions`` as the messages take them."""
+        if self.kernels is not None:
+            return self.kernels(positions)
+        return kernel_factors(self.grid, positions, self.bandwidth)
+
     def kde(self) -> tuple[np.ndarray, np.ndarray]:
         """The exact KDE of the current positions, ``(p, grad p)`` of shapes ``(ny, nx)``
         and ``(2, ny, nx)``: the mean of the robots' kernels, from the factors the last
         step computed (:meth:`harness.estimators.kde.KDE.exact` without evaluating them again).
         """
         assert self._factors is not None, "call initialize first"
+        if self.kernels is not None:
+            return self.kernels.kde(self._factors)
         kx, dkx, ky, dky = self._factors
         n = kx.shape[0]
         return ky.T @ kx / n, np.stack([ky.T @ dkx / n, dky.T @ kx / n])
@@ -391,14 +419,14 @@ class DynamicAverageConsensus:
         self.z = np.zeros((n, self.columns))
         self.w = self.form.integral(self.z)
         self.buffer = np.empty_like(self.z)
-        self._factors = kernel_factors(self.grid, positions, self.bandwidth)
+        self._factors = self._kernel_factors(positions)
         self._mix(w, self.initial_rounds, positions, self.messages.increment(self._factors, None))
         return self.observation()
 
     def step(self, positions: np.ndarray, w: sp.csr_matrix) -> np.ndarray:
         """Add the kernels' change, then ``m`` rounds; returns the observations."""
         assert self.z is not None and self._factors is not None, "call initialize first"
-        factors = kernel_factors(self.grid, positions, self.bandwidth)
+        factors = self._kernel_factors(positions)
         delta = self.form.add_input(self.z, self.messages, factors, self._factors)
         self._factors = factors
         self._mix(w, self.rounds, positions, delta)

@@ -14,12 +14,20 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from harness.domains.base import FreeSpace
 from harness.estimators.distributed.consensus import DynamicAverageConsensus, message_counts
 from harness.estimators.distributed.design import Design
 from harness.estimators.distributed.filters import RobotFilters
+from harness.estimators.distributed.free_space import (
+    FREE_MESSAGES,
+    FreeGradients,
+    FreeRobotKernels,
+)
 from harness.estimators.distributed.graph import algebraic_connectivity, communication_graph
+from harness.estimators.distributed.messages import Messages
 from harness.estimators.distributed.metrics import FIELD_NAMES, NETWORK_KEYS, network_figures
 from harness.estimators.distributed.mixing import Mixer, consensus_weights
+from harness.estimators.distributed.walls import line_of_sight
 from harness.estimators.filters.common import FilterSettings, MeasurementModel
 from harness.estimators.filters.engines import LocalEngine
 from harness.fokker_planck import FokkerPlanck
@@ -86,6 +94,14 @@ class RobotEstimators:
         design: The consensus form, what the robots share, what a message carries
             (:class:`~harness.estimators.distributed.design.Design`; default the
             first-order form, the density, grid fields).
+        free: Free space of a domain with obstacles (None: the square). The robots'
+            kernels are then the free-space heat kernel's
+            (:class:`~harness.estimators.distributed.free_space.FreeRobotKernels`), their
+            messages carry free cells only, and their filters' model is the masked
+            operator the caller passes.
+        through_walls: Whether radio links pass through obstacles (default True); when
+            False a link needs a line of sight on the map of obstacles
+            (:func:`~harness.estimators.distributed.walls.line_of_sight`).
     """
 
     def __init__(
@@ -101,17 +117,25 @@ class RobotEstimators:
         gain: float = 1.0,
         initial_rounds: int | None = None,
         design: Design | None = None,
+        free: FreeSpace | None = None,
+        through_walls: bool = True,
     ) -> None:
         if radius is None and k_nearest is None:
             raise ValueError("give radius, k_nearest or both")
         design = Design() if design is None else design
         self.grid, self.radius, self.k_nearest = grid, radius, k_nearest
+        self.free, self.through_walls = free, bool(through_walls)
         self.share = design.sharing()
         self.filters = RobotFilters(grid, dt, MeasurementModel(n_robots, bandwidth, settings))
-        self.messages = design.carrier(grid, bandwidth)
+        kernels = None if free is None else FreeRobotKernels(free, bandwidth)
+        self.messages: Messages
+        if kernels is None:
+            self.messages = design.carrier(grid, bandwidth)
+        else:
+            self.messages = FREE_MESSAGES[design.messages](design.band_limit, kernels)
         self.consensus = DynamicAverageConsensus(
             grid, bandwidth, rounds=rounds, gain=gain, initial_rounds=initial_rounds,
-            form=design.form(), messages=self.messages,
+            form=design.form(), messages=self.messages, kernels=kernels,
         )  # fmt: skip
         self.adjacency: sp.csr_matrix | None = None
         self._w: sp.csr_matrix | None = None
@@ -119,6 +143,8 @@ class RobotEstimators:
 
     def _graph(self, positions: np.ndarray) -> sp.csr_matrix:
         self.adjacency = communication_graph(positions, self.radius, self.k_nearest)
+        if self.free is not None and not self.through_walls:
+            self.adjacency = line_of_sight(self.adjacency, positions, self.free)
         w, self.consensus.eps = consensus_weights(self.adjacency, self.consensus.gain)
         self._w, self._positions = w, positions
         return w
@@ -244,6 +270,21 @@ class DistributedEstimator:
         band_limit: ``kappa_c h`` of ``band`` messages (finite; 329 modes at the paper's
             grid and ``h``, 2632 bytes a message; 2.0 keeps 214 modes, 1712 bytes).
         command_rounds: Rounds of eq. ``AGREE`` per step (``>= 1``).
+        through_walls: On a domain with obstacles, whether radio links pass through them
+            (default true, as radio does); false keeps only the links with a line of
+            sight on the map of obstacles
+            (:func:`~harness.estimators.distributed.walls.line_of_sight`, applied after
+            the radius or ``k_nearest`` selection). No effect on the square.
+
+    On a domain with obstacles (``model.free``) the same loop runs on free space: each
+    robot's kernel is the free-space heat kernel's column at its position, the same
+    kernel as the centralised KDE there, so the robots' mean tracked field is that KDE
+    (:mod:`~harness.estimators.distributed.free_space`); messages carry free cells only
+    (or the coefficients of the masked Laplacian's band); the filters' model is the
+    masked Fokker-Planck operator of the loop, and the reference is the centralised
+    ``local`` engine on free space. A robot's gradient is the free-space gradient of
+    its own estimate (:meth:`harness.domains.base.FreeSpace.gradient`: the cell itself
+    behind a closed face), so ``gradient: fourth_order`` is refused there.
 
     The last six make the design (:class:`~harness.estimators.distributed.design.Design`,
     which checks them and maps each choice to its class); the designs ``conf/design/*.yaml``
@@ -253,6 +294,7 @@ class DistributedEstimator:
     """
 
     uses_kde = False  # the robots' kernels and the reference's exact KDE, from positions
+    free_space = True  # free-space kernels, messages, masked filters (test_distributed_free_space)
     publishes = NETWORK_KEYS  # every estimate carries them (network_figures)
     carries = ("traces", "reference")  # the reference filters'; each robot's reference
 
@@ -282,8 +324,10 @@ class DistributedEstimator:
         messages: str = Design.messages,
         band_limit: float = Design.band_limit,
         command_rounds: int = Design.command_rounds,
+        through_walls: bool = True,
     ) -> None:
         self.grid = grid
+        self.free = model.free
         self.n_robots = integer("robots", robots, 1)
         h = number("bandwidth", bandwidth, 0.0, strict=True)
         dt = number("dt", dt, 0.0, strict=True)
@@ -304,6 +348,10 @@ class DistributedEstimator:
         known = isinstance(gradient, str) and gradient in GRADIENTS
         require(known, "gradient", gradient, f"one of {', '.join(GRADIENTS)}")
         self.order = GRADIENTS[gradient]
+        if self.free is not None:
+            require(self.order == 2, "gradient", gradient,
+                    "grid on a domain with obstacles (the free-space gradient)")  # fmt: skip
+        through_walls = flag("through_walls", through_walls)
         initial_rounds = integer("initial_rounds", initial_rounds, 0)
         design = Design(
             consensus=consensus, integral_gain=integral_gain, share=share,
@@ -317,9 +365,14 @@ class DistributedEstimator:
         self.network = RobotEstimators(
             grid, dt, self.n_robots, h, settings, radius=radius, k_nearest=k_nearest,
             rounds=rounds, gain=gain, initial_rounds=initial_rounds, design=design,
+            free=self.free, through_walls=through_walls,
         )  # fmt: skip
         measurement = MeasurementModel(self.n_robots, h, settings)
-        self.central = LocalEngine(grid, model.sigma, dt, measurement)
+        if self.free is None:
+            self.central = LocalEngine(grid, model.sigma, dt, measurement)
+        else:
+            self.central = LocalEngine(grid, model.sigma, dt, measurement, free=self.free)
+            self._gradients = FreeGradients(self.free)
         self._steps = 0
         self._connectivity = float("nan")
 
@@ -366,12 +419,17 @@ class DistributedEstimator:
         network = network_figures(g, est.p_hat, p_central, adj,
                                   self.network.communication(adj), self._connectivity)  # fmt: skip
         p_mean = est.p_hat.mean(axis=0).reshape(g.shape)
-        q_mean = grid_gradient(g, p_mean, self.order)  # linear: the robots' mean
         central, robot = FIELD_NAMES
         fields = {central: p_central, robot: est.p_hat[self.robot].reshape(g.shape)}
+        q_hat = None
+        if self.free is None:
+            q_mean = grid_gradient(g, p_mean, self.order)  # linear: the robots' mean
+        else:  # each robot's free-space gradient of its own estimate, and their mean
+            q_mean = self.free.gradient(p_mean)
+            q_hat = self._gradients(est.p_hat)
         return Estimate(
             p_mean, q_mean, *self.central.traces,
-            robots=RobotEstimates(est.p_hat, None, np.ravel(p_central), self.order),
+            robots=RobotEstimates(est.p_hat, q_hat, np.ravel(p_central), self.order),
             fields=fields, metrics=network,
         )  # fmt: skip
 
