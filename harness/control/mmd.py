@@ -10,6 +10,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from harness.control.free_kernels import FreeKernelSums, free_command
 from harness.control.kernels import (
     Nodes,
     check_length,
@@ -137,6 +138,7 @@ class MMDControl:
 
     uses = "positions, target smoothed by the kernel"
     divides_by_density = False
+    free_space = True  # heat kernel of free space (tests/test_kernel_laws_free_space.py)
 
     @classmethod
     def memory_estimate(
@@ -167,6 +169,9 @@ class MMDControl:
         self.v_max = speed_cap(v_max)
         self.nodes = Nodes(g, self.length, integer("bin_factor", bin_factor, 1))
         self.drift = noise_drift(target, self.sigma, self.noise_compensation)
+        self.sums = None if target.free is None else FreeKernelSums(target, self.length)
+        if self.sums is not None:
+            return
         n = self.nodes
         self._from_nodes = self._kernels(n.x, n.y, g.x, g.y)
         self._from_cells = self._kernels(g.x, g.y, g.x, g.y)
@@ -195,17 +200,39 @@ class MMDControl:
         """The feedback ``-beta grad(k_l * (mu_N - p_*))`` at the cell centres, ``(2,
         ny, nx)`` (length / s): of the positions, or without them of the density.
         """
+        if self.sums is not None:
+            return self._free_feedback(inp)[0]
         if inp.positions is not None:
             return self.binned(self.nodes.weights(inp.positions))
         p = input_density(inp, self.target.grid)
         grad = self._sums(p * self.target.grid.cell_area, self._from_cells)
         return -self.beta * (grad - self._target_cells)
 
+    def _free_feedback(self, inp: ControlInput) -> tuple[np.ndarray, np.ndarray | None]:
+        """On free space: the feedback ``-beta grad k_l * (mu_N - p_*)`` at the cell
+        centres ``(2, ny, nx)`` and, with robots, at the robots ``(2, N)`` (without the
+        drift), ``k_l`` the heat kernel of free space (:mod:`harness.control.free_kernels`).
+        """
+        s = self.sums
+        assert s is not None
+        positions = inp.positions
+        if positions is not None:
+            q = s.binned(positions)
+        else:
+            q = s.spread(input_density(inp, self.target.grid))
+        u = s.heat(q - s.target_fine)
+        centres = -self.beta * s.gradient_at_centres(u)
+        if positions is None:
+            return centres, None
+        return centres, -self.beta * s.at_robots(s.fine_gradient(u), positions)
+
     def binned(self, weights: np.ndarray) -> np.ndarray:
         """The feedback at the cell centres, ``(2, ny, nx)`` (length / s), of robots whose
         linear binning on the nodes (:attr:`nodes`) is ``weights`` ``(By + 1, Bx + 1)``
-        (sum 1): ``-beta grad sum_n (w_n - W*_n) k_l(u_n, .)``.
+        (sum 1): ``-beta grad sum_n (w_n - W*_n) k_l(u_n, .)``. On the square only.
         """
+        if self.sums is not None:
+            raise ValueError("binned evaluates the square's kernel sums (no obstacles)")
         return -self.beta * self._sums(weights - self.target_weights, self._from_nodes)
 
     def feedback_at(
@@ -221,6 +248,8 @@ class MMDControl:
         """
         g = self.target.grid
         xs, ys = np.atleast_1d(xs), np.atleast_1d(ys)
+        if self.sums is not None:
+            raise ValueError("feedback_at evaluates the square's kernel sums (no obstacles)")
         if positions is not None:
             n = self.nodes
             w = n.weights(positions) - self.target_weights
@@ -232,8 +261,14 @@ class MMDControl:
         return -self.beta * (grad - self._sums(self.target.p * g.cell_area, kernels))
 
     def __call__(self, inp: ControlInput) -> Command:
-        """The field: the feedback at the centres (faces: their means) plus the drift."""
-        return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        """The field: the feedback at the centres (faces: their means) plus the drift.
+        On free space the field carries no flux through closed faces, and with robots
+        each robot gets its own velocity (:meth:`FreeKernelSums.no_push
+        <harness.control.free_kernels.FreeKernelSums.no_push>`).
+        """
+        if self.sums is None:
+            return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        return free_command(self.sums, self._free_feedback(inp), self.drift, inp).capped(self.v_max)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``beta max(p0)``: linearised about ``p0``, the feedback's flux is ``beta p0
