@@ -97,6 +97,30 @@ class MMDControl:
     the steady state solves ``beta k_l * (p - p_*) + sigma log p = c``, biased towards
     uniform by about ``sigma / beta`` times ``k_l^{-1}`` of ``log p``.
 
+    Free space (``target.free``, a domain with obstacles). The same law with ``k_l``
+    the heat kernel of free space at time ``l^2 / 2``
+    (:mod:`harness.control.free_kernels`):
+
+        v(x) = -beta grad [(k_l * mu_N)(x) - (k_l * p_*)(x)] + sigma grad log p_*(x),
+
+    ``k_l = exp(t A)`` with ``A`` the Laplacian of free space with no flux through
+    closed faces: the Gaussian of length ``l`` away from obstacles, decaying with the
+    distance along free space across a wall (below 1e-10 of the plane's Gaussian
+    straight across the rooms' wall, 0 between components). The robots' binned
+    density on the kernel's fine cells minus ``p_*``'s expected binned density is
+    diffused once per step; the feedback is its gradient read at the centres (the
+    field) and interpolated at each robot on free space (the robots' own velocities),
+    whose components toward an obstacle are removed. The derivation of the fixed
+    point above holds with this kernel (symmetric, positive definite, zero normal
+    derivative at closed faces): the mean field is the Wasserstein gradient flow of
+    ``F`` on free space, and at a steady state ``beta k_l * (p - p_*) + sigma log(p /
+    p_*) = c_i`` on each component ``i``. Neither the kernel nor the noise crosses a
+    wall, so each component keeps its mass; the builder refuses a target with mass
+    where no robot starts, and on a connected domain ``p = p_*`` is the only steady
+    state. The mean-field feedback vanishes exactly at ``p = p_*``. The robots'
+    rule at obstacles acts only within a fine cell (or a raster square) of them; its
+    effect on the swarm's fixed point is measured in docs/domains.md.
+
     Stability (known). For ``sigma = 0`` the MMD flow converges to the global minimum
     only under conditions (Arbel et al.: a bound on a negative Sobolev distance along
     the flow); it can stall at particle configurations where the witness gradient

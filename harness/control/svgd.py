@@ -106,6 +106,32 @@ class SVGDControl:
     state. The noise with its compensation is the Wasserstein gradient flow of the same
     KL, added to SVGD's.
 
+    Free space (``target.free``, a domain with obstacles). The law in its integrated
+    form (the second line of the mean field above) with one scalar kernel for both
+    components, ``k_l`` the heat kernel of free space at time ``l^2 / 2``
+    (:mod:`harness.control.free_kernels`):
+
+        v(x) = -eps int k_l(y, x) p_*(y) grad (p / p_*)(y) dy + sigma grad log p_*(x).
+
+    On the square the matrix-valued kernel removes Stein's boundary term from the
+    particle form; on free space the integrated form has none to remove. The robots
+    enter by their binned density ``p`` on the kernel's fine cells: ``r = p / p_*``
+    is differenced on the open faces (``p*_f`` the logarithmic mean, a closed face
+    carries 0), each cell takes the mean of its two faces per axis, and the result is
+    diffused once per step. By summation by parts this is the particle form ``(eps /
+    N) sum_j [k(X_j, x) grad log p_*(X_j) + grad_{X_j} k(X_j, x)]`` with the
+    derivative a difference on the fine cells and ``k p_*`` taken as 0 behind closed
+    faces. The field is read at the centres; each robot's velocity is interpolated on
+    free space, its components toward an obstacle removed. Fixed point: with ``u =
+    grad log(p / p_*)`` the feedback is ``-eps k_l * (p u)``; the flux ``p v`` is 0
+    through closed faces, so ``d/dt KL(p || p_*) = -eps sum_a <p u_a, k_l (p u_a)> -
+    sigma int p |u|^2 <= 0`` (``k_l`` positive definite), stationary only at ``u = 0``:
+    ``p`` proportional to ``p_*`` on each component, each component keeping its mass
+    (neither the kernel nor the noise crosses a wall; the builder refuses a target
+    with mass where no robot starts). The mean-field feedback vanishes exactly at
+    ``p = p_*`` (``r = 1``). The robots' rule at obstacles acts only within a fine cell
+    (or a raster square) of them; its effect is measured in docs/domains.md.
+
     Stability (known). SVGD's mean field is the gradient flow of ``KL(p || p_*)`` in the
     Stein geometry (Liu, "Stein variational gradient descent as gradient flow", NeurIPS
     2017, arXiv 1704.07520). KL decreases by the squared kernel Stein discrepancy, which
