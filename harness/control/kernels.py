@@ -8,6 +8,10 @@ mean-field form, the same law with the swarm's empirical measure replaced by a d
 (:attr:`harness.records.ControlInput.density`), which the mean-field plant and the agents
 plant's ``N -> infinity`` limit use. Neither puts a density in a denominator.
 
+Free space. On a domain with obstacles the kernel is the heat kernel of free space
+instead of the images, and each robot gets its own velocity
+(:mod:`harness.control.free_kernels`); the kernels and sums below are the square's.
+
 Kernels. Both laws use the normalised Gaussian of length ``l`` with wall images, one per
 wall and the corner images (the product of the 1-D sums), per axis
 

@@ -10,6 +10,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from harness.control.free_kernels import FreeKernelSums, free_command
 from harness.control.kernels import (
     Nodes,
     check_length,
@@ -96,6 +97,30 @@ class MMDControl:
     the steady state solves ``beta k_l * (p - p_*) + sigma log p = c``, biased towards
     uniform by about ``sigma / beta`` times ``k_l^{-1}`` of ``log p``.
 
+    Free space (``target.free``, a domain with obstacles). The same law with ``k_l``
+    the heat kernel of free space at time ``l^2 / 2``
+    (:mod:`harness.control.free_kernels`):
+
+        v(x) = -beta grad [(k_l * mu_N)(x) - (k_l * p_*)(x)] + sigma grad log p_*(x),
+
+    ``k_l = exp(t A)`` with ``A`` the Laplacian of free space with no flux through
+    closed faces: the Gaussian of length ``l`` away from obstacles, decaying with the
+    distance along free space across a wall (below 1e-10 of the plane's Gaussian
+    straight across the rooms' wall, 0 between components). The robots' binned
+    density on the kernel's fine cells minus ``p_*``'s expected binned density is
+    diffused once per step; the feedback is its gradient read at the centres (the
+    field) and interpolated at each robot on free space (the robots' own velocities),
+    whose components toward an obstacle are removed. The derivation of the fixed
+    point above holds with this kernel (symmetric, positive definite, zero normal
+    derivative at closed faces): the mean field is the Wasserstein gradient flow of
+    ``F`` on free space, and at a steady state ``beta k_l * (p - p_*) + sigma log(p /
+    p_*) = c_i`` on each component ``i``. Neither the kernel nor the noise crosses a
+    wall, so each component keeps its mass; the builder refuses a target with mass
+    where no robot starts, and on a connected domain ``p = p_*`` is the only steady
+    state. The mean-field feedback vanishes exactly at ``p = p_*``. The robots'
+    rule at obstacles acts only within a fine cell (or a raster square) of them; its
+    effect on the swarm's fixed point is measured in docs/domains.md.
+
     Stability (known). For ``sigma = 0`` the MMD flow converges to the global minimum
     only under conditions (Arbel et al.: a bound on a negative Sobolev distance along
     the flow); it can stall at particle configurations where the witness gradient
@@ -137,6 +162,7 @@ class MMDControl:
 
     uses = "positions, target smoothed by the kernel"
     divides_by_density = False
+    free_space = True  # heat kernel of free space (tests/test_kernel_laws_free_space.py)
 
     @classmethod
     def memory_estimate(
@@ -167,6 +193,9 @@ class MMDControl:
         self.v_max = speed_cap(v_max)
         self.nodes = Nodes(g, self.length, integer("bin_factor", bin_factor, 1))
         self.drift = noise_drift(target, self.sigma, self.noise_compensation)
+        self.sums = None if target.free is None else FreeKernelSums(target, self.length)
+        if self.sums is not None:
+            return
         n = self.nodes
         self._from_nodes = self._kernels(n.x, n.y, g.x, g.y)
         self._from_cells = self._kernels(g.x, g.y, g.x, g.y)
@@ -195,17 +224,39 @@ class MMDControl:
         """The feedback ``-beta grad(k_l * (mu_N - p_*))`` at the cell centres, ``(2,
         ny, nx)`` (length / s): of the positions, or without them of the density.
         """
+        if self.sums is not None:
+            return self._free_feedback(inp)[0]
         if inp.positions is not None:
             return self.binned(self.nodes.weights(inp.positions))
         p = input_density(inp, self.target.grid)
         grad = self._sums(p * self.target.grid.cell_area, self._from_cells)
         return -self.beta * (grad - self._target_cells)
 
+    def _free_feedback(self, inp: ControlInput) -> tuple[np.ndarray, np.ndarray | None]:
+        """On free space: the feedback ``-beta grad k_l * (mu_N - p_*)`` at the cell
+        centres ``(2, ny, nx)`` and, with robots, at the robots ``(2, N)`` (without the
+        drift), ``k_l`` the heat kernel of free space (:mod:`harness.control.free_kernels`).
+        """
+        s = self.sums
+        assert s is not None
+        positions = inp.positions
+        if positions is not None:
+            q = s.binned(positions)
+        else:
+            q = s.spread(input_density(inp, self.target.grid))
+        u = s.heat(q - s.target_fine)
+        centres = -self.beta * s.gradient_at_centres(u)
+        if positions is None:
+            return centres, None
+        return centres, -self.beta * s.at_robots(s.fine_gradient(u), positions)
+
     def binned(self, weights: np.ndarray) -> np.ndarray:
         """The feedback at the cell centres, ``(2, ny, nx)`` (length / s), of robots whose
         linear binning on the nodes (:attr:`nodes`) is ``weights`` ``(By + 1, Bx + 1)``
-        (sum 1): ``-beta grad sum_n (w_n - W*_n) k_l(u_n, .)``.
+        (sum 1): ``-beta grad sum_n (w_n - W*_n) k_l(u_n, .)``. On the square only.
         """
+        if self.sums is not None:
+            raise ValueError("binned evaluates the square's kernel sums (no obstacles)")
         return -self.beta * self._sums(weights - self.target_weights, self._from_nodes)
 
     def feedback_at(
@@ -221,6 +272,8 @@ class MMDControl:
         """
         g = self.target.grid
         xs, ys = np.atleast_1d(xs), np.atleast_1d(ys)
+        if self.sums is not None:
+            raise ValueError("feedback_at evaluates the square's kernel sums (no obstacles)")
         if positions is not None:
             n = self.nodes
             w = n.weights(positions) - self.target_weights
@@ -232,8 +285,14 @@ class MMDControl:
         return -self.beta * (grad - self._sums(self.target.p * g.cell_area, kernels))
 
     def __call__(self, inp: ControlInput) -> Command:
-        """The field: the feedback at the centres (faces: their means) plus the drift."""
-        return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        """The field: the feedback at the centres (faces: their means) plus the drift.
+        On free space the field carries no flux through closed faces, and with robots
+        each robot gets its own velocity (:meth:`FreeKernelSums.no_push
+        <harness.control.free_kernels.FreeKernelSums.no_push>`).
+        """
+        if self.sums is None:
+            return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        return free_command(self.sums, self._free_feedback(inp), self.drift, inp).capped(self.v_max)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``beta max(p0)``: linearised about ``p0``, the feedback's flux is ``beta p0

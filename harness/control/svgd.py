@@ -11,6 +11,7 @@ from typing import ClassVar
 import numpy as np
 from scipy.interpolate import RectBivariateSpline
 
+from harness.control.free_kernels import FreeKernelSums, free_command, stein_faces, stein_flux
 from harness.control.kernels import (
     Nodes,
     check_length,
@@ -105,6 +106,32 @@ class SVGDControl:
     state. The noise with its compensation is the Wasserstein gradient flow of the same
     KL, added to SVGD's.
 
+    Free space (``target.free``, a domain with obstacles). The law in its integrated
+    form (the second line of the mean field above) with one scalar kernel for both
+    components, ``k_l`` the heat kernel of free space at time ``l^2 / 2``
+    (:mod:`harness.control.free_kernels`):
+
+        v(x) = -eps int k_l(y, x) p_*(y) grad (p / p_*)(y) dy + sigma grad log p_*(x).
+
+    On the square the matrix-valued kernel removes Stein's boundary term from the
+    particle form; on free space the integrated form has none to remove. The robots
+    enter by their binned density ``p`` on the kernel's fine cells: ``r = p / p_*``
+    is differenced on the open faces (``p*_f`` the logarithmic mean, a closed face
+    carries 0), each cell takes the mean of its two faces per axis, and the result is
+    diffused once per step. By summation by parts this is the particle form ``(eps /
+    N) sum_j [k(X_j, x) grad log p_*(X_j) + grad_{X_j} k(X_j, x)]`` with the
+    derivative a difference on the fine cells and ``k p_*`` taken as 0 behind closed
+    faces. The field is read at the centres; each robot's velocity is interpolated on
+    free space, its components toward an obstacle removed. Fixed point: with ``u =
+    grad log(p / p_*)`` the feedback is ``-eps k_l * (p u)``; the flux ``p v`` is 0
+    through closed faces, so ``d/dt KL(p || p_*) = -eps sum_a <p u_a, k_l (p u_a)> -
+    sigma int p |u|^2 <= 0`` (``k_l`` positive definite), stationary only at ``u = 0``:
+    ``p`` proportional to ``p_*`` on each component, each component keeping its mass
+    (neither the kernel nor the noise crosses a wall; the builder refuses a target
+    with mass where no robot starts). The mean-field feedback vanishes exactly at
+    ``p = p_*`` (``r = 1``). The robots' rule at obstacles acts only within a fine cell
+    (or a raster square) of them; its effect is measured in docs/domains.md.
+
     Stability (known). SVGD's mean field is the gradient flow of ``KL(p || p_*)`` in the
     Stein geometry (Liu, "Stein variational gradient descent as gradient flow", NeurIPS
     2017, arXiv 1704.07520). KL decreases by the squared kernel Stein discrepancy, which
@@ -142,6 +169,7 @@ class SVGDControl:
 
     uses = "positions, target score"
     divides_by_density = False
+    free_space = True  # heat kernel of free space (tests/test_kernel_laws_free_space.py)
 
     @classmethod
     def memory_estimate(
@@ -172,6 +200,10 @@ class SVGDControl:
         self.v_max = speed_cap(v_max)
         self.nodes = n = Nodes(g, self.length, integer("bin_factor", bin_factor, 1))
         self.drift = noise_drift(target, self.sigma, self.noise_compensation)
+        self.sums = None if target.free is None else FreeKernelSums(target, self.length)
+        if self.sums is not None:
+            self._fine_faces = stein_faces(self.sums)
+            return
         fine, values = fine_target(target, n)
         self.target_weights = expected_weights(fine, values, n)
         self.log_target = RectBivariateSpline(
@@ -239,15 +271,40 @@ class SVGDControl:
         """The SVGD velocity at the cell centres, ``(2, ny, nx)`` (length / s): of the
         positions (binned), or without them the mean-field form of the density.
         """
+        if self.sums is not None:
+            return self._free_feedback(inp)[0]
         if inp.positions is not None:
             return self.binned(self.nodes.weights(inp.positions))
         return self._stein_sums(input_density(inp, self.target.grid), self._from_faces)
+
+    def _free_feedback(self, inp: ControlInput) -> tuple[np.ndarray, np.ndarray | None]:
+        """On free space: the SVGD velocity ``-eps k_l * [p_* grad(p / p_*)]`` at the
+        cell centres ``(2, ny, nx)`` and, with robots, at the robots ``(2, N)`` (without
+        the drift), ``k_l`` the heat kernel of free space and ``p`` the robots' binned
+        density or the input density spread on the fine cells
+        (:mod:`harness.control.free_kernels`; :func:`stein_flux`).
+        """
+        s = self.sums
+        assert s is not None
+        positions = inp.positions
+        if positions is not None:
+            q = s.binned(positions)
+        else:
+            q = s.spread(input_density(inp, self.target.grid))
+        u = s.heat(stein_flux(s, self._fine_faces, q))
+        centres = self.eps * s.values_at_centres(u)
+        if positions is None:
+            return centres, None
+        return centres, self.eps * s.at_robots(u.T, positions)
 
     def binned(self, weights: np.ndarray) -> np.ndarray:
         """The SVGD velocity at the cell centres, ``(2, ny, nx)`` (length / s), of robots
         whose linear binning on the nodes (:attr:`nodes`) is ``weights`` ``(By + 1, Bx +
         1)`` (sum 1): ``eps sum_n (w_n - W*_n) [k_a(u_n, .) s_a(u_n) + d_{u_a} k_a(u_n, .)]``.
+        On the square only.
         """
+        if self.sums is not None:
+            raise ValueError("binned evaluates the square's kernel sums (no obstacles)")
         return self._robot_sums(weights - self.target_weights, self._from_nodes)
 
     def feedback_at(
@@ -261,6 +318,8 @@ class SVGDControl:
         domain, walls included), ``(2, len(ys), len(xs))``: the sums of :meth:`feedback`
         with the kernels evaluated at these points.
         """
+        if self.sums is not None:
+            raise ValueError("feedback_at evaluates the square's kernel sums (no obstacles)")
         xs, ys = np.atleast_1d(xs), np.atleast_1d(ys)
         if positions is not None:
             w = self.nodes.weights(positions) - self.target_weights
@@ -270,8 +329,14 @@ class SVGDControl:
         return self._stein_sums(density, self._face_kernels(xs, ys))
 
     def __call__(self, inp: ControlInput) -> Command:
-        """The field: the SVGD velocity at the centres (faces: their means) plus the drift."""
-        return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        """The field: the SVGD velocity at the centres (faces: their means) plus the drift.
+        On free space the field carries no flux through closed faces, and with robots
+        each robot gets its own velocity (:meth:`FreeKernelSums.no_push
+        <harness.control.free_kernels.FreeKernelSums.no_push>`).
+        """
+        if self.sums is None:
+            return Command(kernel_field(self.feedback(inp), self.drift)).capped(self.v_max)
+        return free_command(self.sums, self._free_feedback(inp), self.drift, inp).capped(self.v_max)
 
     def feedback_diffusivity(self, p0: np.ndarray) -> float:
         """``eps max(p0)``: linearised about ``p0`` the flux ``p v`` is ``-eps p0 k_a *
