@@ -257,3 +257,40 @@ def test_a_decentralised_option_that_does_not_hold_on_free_space_is_refused(
                     "estimator=distributed", override])  # fmt: skip
     assert line is not None and line.startswith(f"invalid config: {key}"), line
     assert allowed in line, line
+
+
+def test_the_memory_estimate_on_free_space_bounds_the_kernel_tables_build():
+    """tracemalloc sees numpy's allocations: the estimate's share for the table bounds the
+    peak of building it (rooms, n = 24), and the check counts it only off the square."""
+    import tracemalloc
+
+    from harness.domains.rooms import Rooms
+    from harness.estimators.distributed.estimator import DistributedEstimator
+    from harness.estimators.distributed.free_space import FreeRobotKernels
+    from harness.grid import Grid
+
+    grid = Grid.square(24)
+    free = Rooms().resolve(grid)
+    FreeRobotKernels(free, 0.04)  # compile first: only the arrays are measured
+    tracemalloc.start()
+    kernels = FreeRobotKernels(free, 0.04)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    square = DistributedEstimator.memory_estimate(grid, robots=64, bandwidth=0.04)
+    rooms = DistributedEstimator.memory_estimate(grid, robots=64, bandwidth=0.04, free_space=True)
+    extra = rooms.nbytes - square.nbytes
+    assert extra >= peak, (extra, peak)
+    assert extra <= 6 * peak, (extra, peak)  # not far above
+    assert kernels.table.nbytes <= extra / 4
+
+
+def test_the_memory_check_passes_free_space_only_off_the_square(compose):
+    from harness.grid import Grid
+    from harness.runs import resources
+
+    grid = Grid.square(30)
+    square = resources.check_memory(compose(["estimator=distributed"]), grid, (1 << 50, "t"))
+    rooms = resources.check_memory(
+        compose(["estimator=distributed", "domain=rooms"]), grid, (1 << 50, "t")
+    )
+    assert rooms - square >= 4 * 8 * (3 * 3 * 900) * 900  # the table, r = 3 at n = 30

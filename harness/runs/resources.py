@@ -149,7 +149,8 @@ def check_memory(cfg: DictConfig, grid: Grid, available: tuple[int, str] | None 
 
     The estimate is the sum of the components' own
     (:func:`harness.protocols.memory_estimate`: ``memory_estimate`` on the class, from
-    its YAML parameters; a conservative default otherwise), the shared model (the
+    its YAML parameters, and ``free_space=True`` on a domain other than the square; a
+    conservative default otherwise), the shared model (the
     Fokker-Planck operator and its LU factorisation, the logger's buffers) and
     :data:`PROCESS_BYTES`, the process itself.
 
@@ -163,6 +164,7 @@ def check_memory(cfg: DictConfig, grid: Grid, available: tuple[int, str] | None 
     parts: list[tuple[int, str]] = [
         (default_memory(grid).nbytes + (8 << 20) + PROCESS_BYTES, "grid.n")
     ]
+    obstacles = _has_obstacles(cfg)
     for group in GROUPS:
         node = cfg.get(group)
         if not isinstance(node, DictConfig) or "_target_" not in node:
@@ -174,6 +176,8 @@ def check_memory(cfg: DictConfig, grid: Grid, available: tuple[int, str] | None 
         resolved = OmegaConf.to_container(node, resolve=True)
         params = {str(k): v for k, v in resolved.items()} if isinstance(resolved, dict) else {}
         params.pop("_target_", None)
+        if obstacles:
+            params["free_space"] = True
         try:
             estimate = memory_estimate(cls, grid, params)
         except Exception:  # a bad parameter is refused when the component is built
@@ -192,6 +196,22 @@ def check_memory(cfg: DictConfig, grid: Grid, available: tuple[int, str] | None 
             f"more than the {_size(have[0])} available ({have[1]})",
         )
     return total
+
+
+def _has_obstacles(cfg: DictConfig) -> bool:
+    """Whether the run's domain may have obstacles: any domain but the plain square
+    (:class:`harness.domains.square.Square`, also when ``domain`` is absent).
+    """
+    from harness.domains.square import Square
+
+    target = OmegaConf.select(cfg, "domain._target_", default=None)
+    if target is None:
+        return False
+    try:
+        cls = hydra.utils.get_class(str(target))
+    except Exception:  # not importable: the build refuses it
+        return False
+    return not (isinstance(cls, type) and issubclass(cls, Square))
 
 
 def _public_key(cfg: DictConfig, group: str, name: str) -> str:

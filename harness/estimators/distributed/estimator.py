@@ -15,6 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from harness.domains.base import FreeSpace
+from harness.estimators.diffusion import refinement
 from harness.estimators.distributed.consensus import DynamicAverageConsensus, message_counts
 from harness.estimators.distributed.design import Design
 from harness.estimators.distributed.filters import RobotFilters
@@ -392,7 +393,11 @@ class DistributedEstimator:
         ``r`` (2.5: the swarm gathers, at the paper's start box at twice the uniform
         density) and ``deg = 2 k`` for the ``k`` nearest. Calibrated on the peak
         resident memory at N = 16384, r = 0.1 (``python -m benchmarks.distributed
-        --app`` checks every design against it).
+        --app`` checks every design against it). On a domain with obstacles
+        (``free_space``, passed by :func:`harness.runs.resources.check_memory`) the
+        robots' kernel table (:class:`~harness.estimators.distributed.free_space.FreeRobotKernels`)
+        of at most ``(r n)^2 x n^2`` float64 values (``r`` the KDE's refinement), four
+        times over while it is built (measured: a 52 MB table raised the peak by 157 MB).
         """
         n = robots if isinstance(robots, int) and robots > 0 else 1
         try:
@@ -408,7 +413,17 @@ class DistributedEstimator:
         elif isinstance(radius, (int, float)) and radius >= 0:
             degree = min(degree, 2.5 * n * np.pi * float(radius) ** 2)
         graph = 4 * 12 * n * degree
-        return MemoryEstimate(default_memory(grid).nbytes + n * per_robot + int(graph), "robots")
+        table = 0
+        bandwidth = params.get("bandwidth")
+        if params.get("free_space") is True and isinstance(bandwidth, (int, float)):
+            try:
+                r = refinement(grid, float(bandwidth))
+            except ValueError:  # refused when the estimator is built
+                r = 1
+            table = 4 * 8 * (r * r * grid.size) * grid.size
+        return MemoryEstimate(
+            default_memory(grid).nbytes + n * per_robot + int(graph) + table, "robots"
+        )
 
     def _estimate(self, est: DistributedEstimate, p_central: np.ndarray) -> Estimate:
         g = self.grid

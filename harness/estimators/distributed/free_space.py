@@ -87,7 +87,7 @@ class FreeRobotKernels:
 
     def shares(self, positions: np.ndarray) -> KernelFactors:
         """The robots' bilinear shares ``b_i`` on the fine grid: ``(rows, shares)``,
-        ``(N, 4)`` table rows (:attr:`table`) and shares summing to 1 per robot, as
+        ``(N, 4)`` table rows (``table``) and shares summing to 1 per robot, as
         :func:`harness.compiled.binning.free_binning` splits a robot (a robot found in a
         blocked subcell counts whole at its nearest free one).
         """
