@@ -244,7 +244,7 @@ def test_a_target_in_a_component_no_robot_starts_in_is_refused(refusal):
     wall = "[[[0.47,0.0],[0.53,0.0],[0.53,1.0],[0.47,1.0]]]"
     line = refusal(["domain=obstacles", "grid.n=12", "~domain.discs",
                     f"domain.polygons={wall}", "init=left_room"])  # fmt: skip
-    assert line is not None and line.startswith("invalid config: target="), line
+    assert line is not None and line.startswith("invalid config: target='three_bumps': "), line
     assert "no robot starts" in line
 
 
@@ -258,7 +258,7 @@ def test_an_initial_density_inside_a_wall_is_refused_in_one_line(refusal):
     robots' map of obstacles decides, before anything runs."""
     line = refusal(["domain=rooms", "grid.n=12", "agents.n=40", "init=paper_box",
                     "init.x0=0.47", "init.x1=0.53", "init.y0=0.1", "init.y1=0.3"])  # fmt: skip
-    assert line is not None and line.startswith("invalid config: init="), line
+    assert line is not None and line.startswith("invalid config: init='paper_box': "), line
     assert "(it puts 0 there)" in line
 
 
@@ -268,5 +268,5 @@ def test_a_target_with_only_round_off_in_free_space_is_refused(refusal):
     line = refusal(["domain=obstacles", "grid.n=12", "agents.n=40", "~domain.polygons",
                     "domain.discs=[{center:[0.5,0.5],radius:0.3}]", "target.means=[[0.5,0.5]]",
                     "target.weights=[1.0]", "target.stds=[0.02]", "target.floor=1e-9"])  # fmt: skip
-    assert line is not None and line.startswith("invalid config: target="), line
+    assert line is not None and line.startswith("invalid config: target='three_bumps': "), line
     assert "at least 0.001 of its mass in free space" in line

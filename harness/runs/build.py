@@ -538,7 +538,25 @@ def _check_follows(cfg: DictConfig, target: Target, control: Control) -> None:
 
 
 def build(cfg: DictConfig) -> Experiment:
-    """Everything a run of ``cfg`` needs, checked; the only reader of the config.
+    """Everything a run of ``cfg`` needs, checked; the only reader of the config
+    (:func:`_build`). A refusal that names a config group by the object built from it
+    (``target=GaussianMixture(...)``) names the option chosen instead (``target=three_bumps``).
+
+    Raises:
+        ConfigError: for the first value that is not allowed.
+    """
+    try:
+        return _build(cfg)
+    except ConfigError as err:
+        option = choices(cfg).get(err.key)
+        if option is not None and not isinstance(err.value, (str, int, float, list, tuple)):
+            err.value = option
+            err.args = (f"invalid config: {err.key}={option!r}: {err.allowed}",)
+        raise
+
+
+def _build(cfg: DictConfig) -> Experiment:
+    """Everything a run of ``cfg`` needs, checked.
 
     In order: every interpolation resolves, every key is read by something, the
     shared blocks, the memory the run will need (estimated from the components'
