@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from analysis import study_pages as sp
-from analysis.study_data import PNG_SIGNATURE, declared_figure, png_problem, read_inputs
+from analysis.study_data import declared_figure, read_inputs
+from harness.png import PNG_SIGNATURE, png_problem
 from tests.test_floor_cache_hostile import Unblocker
 
 ROOT = Path(__file__).resolve().parents[1]
