@@ -159,7 +159,9 @@ def _bomb_png(path):
     )
 
 
-@pytest.mark.parametrize("kind", ["missing", "text", "fifo", "jpeg", "huge", "directory", "bomb"])
+@pytest.mark.parametrize(
+    "kind", ["missing", "text", "fifo", "jpeg", "huge", "directory", "bomb", "critical", "wide"]
+)
 def test_a_mask_that_is_not_a_readable_png_is_refused_naming_path(tmp_path, kind):
     path = tmp_path / "mask.png"
     if kind == "text":
@@ -174,6 +176,19 @@ def test_a_mask_that_is_not_a_readable_png_is_refused_naming_path(tmp_path, kind
         path.mkdir()
     elif kind == "bomb":
         _bomb_png(path)
+    elif kind == "critical":  # a chunk libpng refuses (Pillow reads past it)
+        import struct
+        import zlib
+
+        Image.fromarray(np.zeros((8, 8), dtype=np.uint8), mode="L").save(path)
+        data = path.read_bytes()
+        body = b"x"
+        chunk = (
+            struct.pack(">I", 1) + b"ABCD" + body + struct.pack(">I", zlib.crc32(b"ABCD" + body))
+        )
+        path.write_bytes(data[:33] + chunk + data[33:])
+    elif kind == "wide":  # within the pixel budget, a side over 4096
+        Image.new("L", (5000, 10), 255).save(path)
     with pytest.raises(ParameterError) as err:
         Mask(path=str(path))
     assert err.value.name == "path" and "\n" not in str(err.value)
@@ -188,8 +203,15 @@ def test_a_mask_that_is_not_a_readable_png_is_refused_naming_path(tmp_path, kind
         ({"polygons": [[[0, 0], [1, 1]]]}, "polygons[0]"),
         ({"polygons": [[[0, 0], [1, "a"], [0, 1]]]}, "polygons[0][1]"),
         ({"resolution": 8}, "resolution"),
+        ({"resolution": 100000}, "resolution"),  # 10^10 squares: refused, never allocated
+        ({"polygons": [[[0.2, 0.2], [0.6, 0.6], [0.6, 0.2], [0.2, 0.6]]]}, "polygons[0]"),
+        ({"polygons": [[[0.2, 0.2], [0.4, 0.4], [0.6, 0.6]]]}, "polygons[0]"),  # no area
+        ({"polygons": [[[0.2, 0.2], [0.2, 0.2], [0.2, 0.2]]]}, "polygons[0]"),  # one point
+        ({"discs": [{"center": [0.5, 0.5], "radius": 0.1, "color": "red"}]}, "discs[0]"),
     ],
-)
+    ids=["negative-radius", "one-coordinate", "no-center", "two-vertices", "text-vertex",
+         "resolution-8", "resolution-huge", "bow-tie", "collinear", "one-point", "unknown-key"],
+)  # fmt: skip
 def test_bad_obstacles_are_refused_naming_the_parameter(kwargs, name):
     with pytest.raises(ParameterError) as err:
         Obstacles(**kwargs)
@@ -270,3 +292,40 @@ def test_a_target_with_only_round_off_in_free_space_is_refused(refusal):
                     "target.weights=[1.0]", "target.stds=[0.02]", "target.floor=1e-9"])  # fmt: skip
     assert line is not None and line.startswith("invalid config: target='three_bumps': "), line
     assert "at least 0.001 of its mass in free space" in line
+
+
+def test_a_16_bit_mask_reads_its_grey_levels_scaled_not_clipped(tmp_path):
+    """A 30 % grey wall in a 16-bit image is a wall at threshold 0.5, as in 8 bits."""
+    image = np.full((16, 16), 65535, dtype=np.uint16)
+    image[:, 7:9] = int(0.3 * 65535)
+    path = tmp_path / "wall16.png"
+    Image.fromarray(image).save(path)  # a 16-bit grey PNG (mode I;16)
+    dom = Mask(path=str(path))
+    assert dom.blocked(np.array([0.5, 0.1]), np.array([0.5, 0.5]), 1.0).tolist() == [True, False]
+
+
+def test_a_transparent_background_is_free_and_an_opaque_obstacle_blocked(tmp_path):
+    rgba = np.zeros((16, 16, 4), dtype=np.uint8)  # transparent black everywhere
+    rgba[6:10, 6:10] = (0, 0, 0, 255)  # an opaque black square in the middle
+    path = tmp_path / "drawn.png"
+    Image.fromarray(rgba, mode="RGBA").save(path)
+    dom = Mask(path=str(path))
+    assert dom.blocked(np.array([0.5, 0.1]), np.array([0.5, 0.1]), 1.0).tolist() == [True, False]
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        ({"discs": [{"center": [5.0, 5.0], "radius": 0.1}]}, "discs[0]"),
+        ({"polygons": [[[-2, -2], [3, -2], [3, -1]]]}, "polygons[0]"),
+        ({"polygons": [[[0.2, 0.2], [0.4, 0.2], [0.3, 0.4]], [[1, 1], [2, 1], [2, 2]]]},
+         "polygons[1]"),
+    ],
+    ids=["disc-far-away", "polygon-below", "second-polygon-touching-a-corner"],
+)  # fmt: skip
+def test_an_obstacle_outside_the_square_is_refused_naming_it(kwargs, name):
+    """A shape that covers no part of the square (touching a corner covers no area)."""
+    dom = Obstacles(**kwargs)
+    with pytest.raises(ParameterError) as err:
+        dom.resolve(Grid.square(12))
+    assert err.value.name == name and "outside" in str(err.value)

@@ -34,7 +34,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from harness.grid import Grid
-from harness.parameters import ParameterError, integer
+from harness.parameters import ParameterError, integer, require
 
 SAMPLES = 8
 """Sample points per cell side for :meth:`Domain.free_cells` and :meth:`Domain.open_faces`."""
@@ -109,6 +109,14 @@ class FreeSpace:
         return q / mass
 
 
+MAX_RESOLUTION = 4096
+"""Most squares per side of the robots' map (its ``r^2`` bytes and the plants' clearance
+map of ``4 r^2`` bytes: 80 MiB at the most)."""
+
+RASTER_POINTS = 1 << 20
+"""Points tested at a time while the robots' map is drawn (bounds its temporaries)."""
+
+
 class Domain(ABC):
     """Free space: the grid's rectangle less the obstacles :meth:`blocked` reports.
 
@@ -120,6 +128,12 @@ class Domain(ABC):
 
     def __init__(self, resolution: int = 1024) -> None:
         self.resolution = integer("resolution", resolution, 16)
+        require(
+            self.resolution <= MAX_RESOLUTION,
+            "resolution",
+            resolution,
+            f"an integer from 16 to {MAX_RESOLUTION} (squares per side of the robots' map)",
+        )
 
     @abstractmethod
     def blocked(self, x: np.ndarray, y: np.ndarray, length: float) -> np.ndarray:
@@ -208,10 +222,14 @@ class Domain(ABC):
         """
         r = self.resolution
         centres = (np.arange(r) + 0.5) * (length / r)
+        out = np.zeros((r, r), dtype=np.uint8)
         if self.trivial:
-            return np.zeros((r, r), dtype=np.uint8)
-        x, y = np.meshgrid(centres, centres, indexing="xy")
-        return self.blocked(x, y, length).astype(np.uint8)
+            return out
+        rows = max(1, RASTER_POINTS // r)  # a block of rows at a time: bounded temporaries
+        for start in range(0, r, rows):
+            x, y = np.meshgrid(centres, centres[start : start + rows], indexing="xy")
+            out[start : start + rows] = self.blocked(x, y, length)
+        return out
 
 
 def components(cells: np.ndarray, face_x: np.ndarray, face_y: np.ndarray) -> np.ndarray:

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from harness.domains.base import Domain
 from harness.files import UnreadableFile, read_bytes
 from harness.parameters import ParameterError, number, require
+from harness.png import MAX_SIDE, png_problem
 
 SHIPPED = Path(__file__).resolve().parent / "data"
 """The masks the package ships (``shipped: NAME`` reads ``SHIPPED / NAME.png``)."""
@@ -17,8 +19,9 @@ SHIPPED = Path(__file__).resolve().parent / "data"
 MAX_BYTES = 16 << 20
 """Largest mask file read (bytes)."""
 
-MAX_PIXELS = 4096 * 4096
-"""Largest mask image (pixels), checked before its pixels are decoded."""
+MAX_PIXELS = MAX_SIDE * MAX_SIDE
+"""Largest mask image (pixels): each side at most :data:`harness.png.MAX_SIDE`, checked
+before its pixels are decoded (:func:`harness.png.png_problem`)."""
 
 
 class Mask(Domain):
@@ -79,16 +82,19 @@ def _read_mask(key: str, file: Path, threshold: float) -> np.ndarray:
         data = read_bytes(file, MAX_BYTES)
     except UnreadableFile as err:
         raise ParameterError(key, str(file), f"a readable PNG file ({err})") from None
+    problem = png_problem(data)
+    if problem:
+        raise ParameterError(key, str(file), f"a PNG image a viewer can show ({problem})")
     try:
         with Image.open(io.BytesIO(data)) as image:
-            if image.format != "PNG":
-                raise ParameterError(key, str(file), f"a PNG image (it is {image.format})")
             width, height = image.size
-            if width * height > MAX_PIXELS or min(width, height) < 2:
+            if min(width, height) < 2:
                 raise ParameterError(
-                    key, str(file), f"an image of 2 to {MAX_PIXELS} pixels ({width} x {height})"
+                    key,
+                    str(file),
+                    f"an image 2 to {MAX_SIDE} pixels a side ({width} x {height})",
                 )
-            grey = np.asarray(image.convert("L"), dtype=float) / 255.0
+            grey = grey_levels(image)
     except ParameterError:
         raise
     except Image.DecompressionBombError:
@@ -98,3 +104,23 @@ def _read_mask(key: str, file: Path, threshold: float) -> np.ndarray:
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as err:
         raise ParameterError(key, str(file), f"a PNG image ({type(err).__name__})") from None
     return grey >= threshold
+
+
+SIXTEEN_BIT_MODES = ("I;16", "I;16B", "I;16L", "I")
+"""Pillow's modes of a 16-bit grey PNG (levels 0 to 65535)."""
+
+
+def grey_levels(image: Any) -> np.ndarray:
+    """The grey level of each pixel of a Pillow ``image``, 0 (black) to 1 (white): a
+    16-bit grey image scaled by 65535, any other converted to 8-bit luminance (ITU-R
+    601) over 255; a transparent pixel is composited over white (an obstacle drawn on a
+    transparent background leaves the background free).
+    """
+    from PIL import Image
+
+    if image.mode in SIXTEEN_BIT_MODES:
+        return np.asarray(image, dtype=float) / 65535.0
+    if image.mode in ("LA", "RGBA", "PA", "La", "RGBa") or "transparency" in image.info:
+        rgba = image.convert("RGBA")
+        image = Image.alpha_composite(Image.new("RGBA", rgba.size, (255, 255, 255, 255)), rgba)
+    return np.asarray(image.convert("L"), dtype=float) / 255.0
