@@ -74,20 +74,32 @@ def test_swarm_observer_gives_the_start_metrics_on_obstacles_with_an_initial_den
 
 def _run(tmp_path, *overrides):
     out = tmp_path / "run"
+    _write_run(out, *overrides)
+    return load_run(out / "run.mcap")
+
+
+def _write_run(out, *overrides):
     cmd = [
         sys.executable, "-m", "experiments.closed_loop", "+experiment=smoke",
         "log.progress=off", "log.floor_draws=2", f"hydra.run.dir={out}", *overrides,
     ]  # fmt: skip
     done = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0, done.stderr
-    return load_run(out / "run.mcap")
 
 
-def test_a_run_on_the_rooms_logs_the_start_fraction_against_the_targets_mass(tmp_path):
+@pytest.fixture(scope="module")
+def rooms_run(tmp_path_factory):
+    """The directory of a short run on the rooms, the swarm starting in the left room."""
+    out = tmp_path_factory.mktemp("rooms") / "run"
+    _write_run(out, "domain=rooms", "init=left_room")
+    return out
+
+
+def test_a_run_on_the_rooms_logs_the_start_fraction_against_the_targets_mass(rooms_run):
     """The build hands the initial density to the swarm observer: every robot starts
     in the support of init=left_room, and the target's mass there is the sum of the
     logged target's cells over the box's cells (hand-counted from the log's own mask)."""
-    run = _run(tmp_path, "domain=rooms", "init=left_room")
+    run = load_run(rooms_run / "run.mcap")
     m = run.metrics
     seen = np.isfinite(m["start_fraction"])
     assert seen[0] and seen.sum() >= 3
@@ -192,3 +204,34 @@ def test_domains_figure_from_a_tiny_sweep_with_a_refused_law(tmp_path):
         assert 0 <= float(a["start_fraction_tail_mean_mean"]) <= 1
     assert "start region" in analysed.stdout
     json.dumps(points)  # plain values
+
+
+def test_the_picture_draws_the_robots_and_obstacles_of_a_rooms_log(rooms_run, tmp_path):
+    """The README's picture from a log alone: a PNG of the declared size whose pixels
+    hold the obstacles' grey and the robots' black."""
+    import matplotlib.image
+
+    from analysis.figures import OBSTACLE_GREY
+    from analysis.swarm_picture import DPI, SIDE_INCHES, main
+
+    out = tmp_path / "rooms.png"
+    assert main([str(rooms_run), "--at", "0.1", "--out", str(out)]) == 0
+    image = matplotlib.image.imread(out)
+    side = round(SIDE_INCHES * DPI)
+    assert image.shape[:2] == (side, side)
+    rgb = image[..., :3]
+    grey = float(OBSTACLE_GREY)
+    assert (np.abs(rgb - grey).max(axis=-1) < 0.02).sum() > 100  # the wall
+    assert (rgb.max(axis=-1) < 0.1).sum() > 100  # the robots
+
+
+def test_the_picture_refuses_a_log_without_robots_in_one_line(tmp_path, capsys):
+    from analysis.swarm_picture import main
+
+    run_dir = tmp_path / "meanfield"
+    _write_run(run_dir, "plant=meanfield", "estimator=exact")
+    assert main([str(run_dir), "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no robots' positions" in err
+    assert not (tmp_path / "x.png").exists()
+    assert main([str(tmp_path / "nothing"), "--out", str(tmp_path / "x.png")]) == 2
