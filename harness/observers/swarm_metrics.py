@@ -525,7 +525,7 @@ class StartRegion(FreeCells):
 
     * :meth:`fraction`: ``#{k : X_k in S} / N`` (dimensionless, in ``[0, 1]``), 1 at the
       start;
-    * :attr:`target_mass`: ``sum_{c in S} p_*(c) dx dy`` over the target on free space
+    * ``target_mass``: ``sum_{c in S} p_*(c) dx dy`` over the target on free space
       (unit mass there; dimensionless): the fraction a swarm distributed as ``p_*``
       keeps in ``S``.
 
@@ -533,6 +533,10 @@ class StartRegion(FreeCells):
         init: The initial density's cell values on the control grid (1 / length^2).
         p: The target's cell values (1 / length^2; 0 on blocked cells).
         free: Free space.
+
+    Attributes:
+        region: ``(ny, nx)`` booleans, the cells of ``S``.
+        target_mass: ``p_*``'s mass in ``S`` (dimensionless).
 
     Raises:
         ValueError: when the initial density has no mass on a free cell.
