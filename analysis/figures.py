@@ -113,15 +113,16 @@ OBSTACLE_GREY = "0.6"
 """Fill colour of the obstacles in every panel of a run with obstacles."""
 
 
-def draw_obstacles(ax, run: RunLog) -> None:
+def draw_obstacles(ax, run: RunLog, zorder: float = -1) -> None:
     """The run's obstacles (``/domain/obstacles``, :class:`analysis.load.DomainShapes`),
-    filled grey beneath everything else on ``ax`` (``zorder`` -1; images are drawn at
-    0, points at 1); nothing for a run on the square.
+    filled grey, by default beneath everything else on ``ax`` (``zorder`` -1; images
+    are drawn at 0, points at 1); nothing for a run on the square.
     """
     if run.domain is None or not len(run.domain.rectangles):
         return
     boxes = [Rectangle((x0, y0), x1 - x0, y1 - y0) for x0, y0, x1, y1 in run.domain.rectangles]
-    ax.add_collection(PatchCollection(boxes, facecolor=OBSTACLE_GREY, edgecolor="none", zorder=-1))
+    patches = PatchCollection(boxes, facecolor=OBSTACLE_GREY, edgecolor="none", zorder=zorder)
+    ax.add_collection(patches)
 
 
 def on_free(run: RunLog, values: np.ndarray) -> np.ndarray:

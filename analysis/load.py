@@ -83,6 +83,8 @@ METRIC_UNITS = {
     "trace_Q": "1/length^2",
     "trace_P_grad": "1/length^4",
     "trace_Q_grad": "1/length^4",
+    "start_fraction": "1",
+    "start_target_mass": "1",
 }
 
 

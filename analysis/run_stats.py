@@ -27,6 +27,12 @@ fraction, :mod:`analysis.declaration`). Norms in 1/length, rates in 1/s:
 * Motion statistics (:func:`motion_stats`): ``effort_integral`` (length^2 / s),
   ``speed_tail_mean`` (length / s), ``settling_time`` (s; ``inf``: never settled),
   ``tracking_tail_mean`` (length / s) and ``age_tail_mean`` (s).
+* Start-region statistics (a domain with obstacles, :func:`start_stats`; NaN for other
+  runs), dimensionless unless said: ``start_target_mass`` (``p_*``'s mass in the
+  support of the initial density), ``start_fraction_tail_mean`` (the tail mean of the
+  robots' fraction there), ``start_excess_tail_mean`` (the tail mean of that fraction
+  less the target's mass) and ``start_half_time`` (s; ``inf``: never), the first time
+  the excess is at most half its value at the start.
 """
 
 from __future__ import annotations
@@ -38,6 +44,14 @@ from typing import Any
 import numpy as np
 
 from analysis.load import RunLog
+
+START_STATS = (
+    "start_target_mass",
+    "start_fraction_tail_mean",
+    "start_excess_tail_mean",
+    "start_half_time",
+)
+"""The start-region statistics (:func:`start_stats`)."""
 
 STATS = (
     "phi_tail_mean",
@@ -80,6 +94,7 @@ STATS = (
     "settling_time",
     "tracking_tail_mean",
     "age_tail_mean",
+    *START_STATS,
 )
 """Every statistic of a run, in the order of the CSV's columns."""
 
@@ -167,6 +182,43 @@ def swarm_stats(run: RunLog, last: np.ndarray) -> dict[str, float]:
     for name, key in NETWORK_STATS.items():
         out[name] = tail_mean(key)
     out.update(motion_stats(run, last, out["swarm_floor_mean"]))
+    out.update(start_stats(run, last))
+    return out
+
+
+START_HALF = 0.5
+"""``start_half_time`` is the first time the start region's excess is at most this
+fraction of its value at the start."""
+
+
+def start_stats(run: RunLog, last: np.ndarray) -> dict[str, float]:
+    """How the swarm leaves the region where it started (a domain with obstacles: the
+    metrics ``start_fraction`` and ``start_target_mass`` of
+    :class:`harness.observers.swarm_metrics.StartRegion`), dimensionless: the target's
+    mass in the region ``start_target_mass`` (its last evaluated value), the tail mean of
+    the robots' fraction there ``start_fraction_tail_mean``, the tail mean of the excess
+    ``start_fraction - start_target_mass`` (``start_excess_tail_mean``; 0 when the region
+    holds the target's share, positive when robots are left behind), and
+    ``start_half_time`` (s): the first evaluated time at which the excess is at most
+    :data:`START_HALF` times its first evaluated value (``inf`` when it never is; NaN
+    when the first excess is not positive). All NaN without the metrics.
+    """
+    m = run.metrics
+    out = dict.fromkeys(START_STATS, math.nan)
+    if "start_fraction" not in m or "start_target_mass" not in m:
+        return out
+    t, fraction, mass = m["t"], m["start_fraction"], m["start_target_mass"]
+    seen = np.flatnonzero(np.isfinite(fraction) & np.isfinite(mass))
+    if not seen.size:
+        return out
+    excess = fraction - mass
+    out["start_target_mass"] = float(mass[seen[-1]])
+    out["start_fraction_tail_mean"] = _stat(np.mean, fraction[last])
+    out["start_excess_tail_mean"] = _stat(np.mean, excess[last])
+    first = excess[seen[0]]
+    if first > 0:
+        below = seen[excess[seen] <= START_HALF * first]
+        out["start_half_time"] = float(t[below[0]]) if below.size else math.inf
     return out
 
 

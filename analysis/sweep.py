@@ -43,7 +43,9 @@ The figures (:data:`FIGURES`), each drawing against the primary keys it names:
 * ``robots`` (``plant``, ``law``) and ``link`` (``link.period``, ``link.latency``,
   ``link.loss``): the robot and link studies (:mod:`analysis.robots`);
 * ``distributed_frontier``: the decentralised loop's frontier
-  (:mod:`analysis.frontier`).
+  (:mod:`analysis.frontier`);
+* ``domains`` (``domain``, ``law``, ``agents.n``): every law on domains with obstacles
+  (:mod:`analysis.domains_study`).
 
 Law order. Figures and tables show the laws in alphabetical order of their options (the
 order in which ``control=glob(*)`` runs them), each under its option name.
@@ -72,6 +74,7 @@ from analysis.declaration import (
     Study,
     study_declaration,
 )
+from analysis.domains_study import draw_domains
 from analysis.frontier import FRONTIER_KEYS, draw_frontier
 from analysis.laws import draw_heat_floor, draw_laws_iss, draw_laws_n, draw_laws_noise
 from analysis.robots import LINK_KEYS, draw_link, draw_robots
@@ -104,6 +107,7 @@ FIGURES: dict[str, Figure] = {
         draw_frontier, FRONTIER_KEYS, ("estimator.k_nearest", "estimator.band_limit")
     ),
     "conv_grid_agents": Figure(draw_conv_grid_agents, ("grid.n",)),
+    "domains": Figure(draw_domains, ("domain", "law", "agents.n")),
     "convergence": Figure(draw_convergence),
 }
 """The figures a study can declare (``analysis.figure``), by name."""

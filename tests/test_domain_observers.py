@@ -93,11 +93,13 @@ def test_swarm_observer_logs_component_fractions_on_obstacles_only(rectangle_kde
     grid = Grid.square(10)
     free = WALL.resolve(grid)
     target = Target.from_density(grid, Uniform(), free)
-    obs = SwarmTruth(grid, target, 10, 0.1, True, "auto", every=1, w2_every=1)
+    obs = SwarmTruth(grid, target, 10, 0.1, True, "auto", every=1, w2_every=1, init=Uniform())
     assert domain_keys(free) == (
         "component_fraction_gap",
         "component_fraction_0",
         "component_fraction_1",
+        "start_fraction",
+        "start_target_mass",
     )
     assert set(domain_keys(free)) <= set(obs.gives)
     square = SwarmTruth(grid, Target.from_density(grid, Uniform()), 10, 0.1, True, "auto", 1, 1)

@@ -25,7 +25,10 @@ floors draw robots from ``p_*`` on free space
 (:func:`harness.observers.swarm_metrics.free_target_measure`), and the observer adds
 :func:`domain_keys`: ``component_fraction_gap`` and ``component_fraction_<c>``, the
 robots' fraction in each connected component of free space
-(:class:`harness.observers.swarm_metrics.Components`). The finite-N
+(:class:`harness.observers.swarm_metrics.Components`), and, given the run's initial
+density, ``start_fraction`` and ``start_target_mass``: the robots' fraction in the
+support of the initial density against the target's mass there
+(:class:`harness.observers.swarm_metrics.StartRegion`). The finite-N
 floor of ``swarm_l2`` and ``swarm_w2`` (N robots drawn independently from ``p_*``) is
 computed once per content (:meth:`SwarmTruth.floors`, reused across runs by
 :mod:`harness.observers.floor_cache`) and logged in the ``theory`` record.
@@ -59,6 +62,7 @@ from harness.observers.floor_cache import FloorCache
 from harness.observers.swarm_metrics import (
     Components,
     FreeSampler,
+    StartRegion,
     TargetMeasure,
     free_target_measure,
     swarm_w2,
@@ -90,16 +94,22 @@ GAP_KEY = "component_fraction_gap"
 """``max_c |robots' fraction in component c - p_*'s mass there|`` (dimensionless), on a
 domain with obstacles (:class:`harness.observers.swarm_metrics.Components`)."""
 
+START_KEYS = ("start_fraction", "start_target_mass")
+"""The robots' fraction in the support of the initial density and ``p_*``'s mass there
+(dimensionless), on a domain with obstacles
+(:class:`harness.observers.swarm_metrics.StartRegion`)."""
+
 
 def domain_keys(free: FreeSpace | None) -> tuple[str, ...]:
     """The metrics a domain with obstacles adds to every ``/metrics`` message, after
     the others: :data:`GAP_KEY` and ``component_fraction_<c>`` for each connected
     component ``c = 0, 1, ...`` of free space (the robots' fraction there,
-    dimensionless); none on the plain square (``free`` None).
+    dimensionless), then :data:`START_KEYS`; none on the plain square (``free`` None).
     """
     if free is None:
         return ()
-    return (GAP_KEY, *(f"component_fraction_{c}" for c in range(free.n_components)))
+    components = tuple(f"component_fraction_{c}" for c in range(free.n_components))
+    return (GAP_KEY, *components, *START_KEYS)
 
 
 def on_free(free: FreeSpace | None) -> dict[str, Any]:
@@ -153,6 +163,9 @@ class SwarmTruth:
         plant: The run's plant (run-time argument): one without robots (the mean
             field) gives only ``phat_smoothed_target_l2``, so the builder refuses a guard
             that requires a metric of the robots' positions of it.
+        init: The run's initial density (run-time argument): on a domain with
+            obstacles its support on the grid is the start region of
+            :data:`START_KEYS`; without it those two keys are None.
     """
 
     computes = True  # adds to the step's values, writes nothing (harness.api.simulate)
@@ -172,6 +185,7 @@ class SwarmTruth:
         floor_cache: str | None = None,
         limit: Limit | None = None,
         plant: Plant | None = None,
+        init: Density | None = None,
     ) -> None:
         self.path = TargetPath(target)
         self.has_robots = plant is None or plant.has_robots
@@ -201,6 +215,11 @@ class SwarmTruth:
         else:  # no closed form on free space: the noise-free KDE of the cell values
             self.smoothed_target = self.smoothed_target_cells
         self.components = None if self.free is None else Components(target.p, self.free)
+        self.start = (
+            None
+            if self.free is None or init is None
+            else StartRegion(init.on_grid(grid), target.p, self.free)
+        )
         self._measures: dict[int, TargetMeasure] = {}
         self._at: tuple[float, np.ndarray, np.ndarray | None] | None = None
         # POT and the scipy.stats it loads (about a second) are loaded where the run is
@@ -212,13 +231,18 @@ class SwarmTruth:
     def gives(self) -> tuple[str, ...]:
         """The swarm metrics this observer adds (:func:`harness.observers.base.gives`):
         all of :data:`SWARM_KEYS` with robots, less the two against the limit without
-        one; only ``phat_smoothed_target_l2`` without robots.
+        one, then on a domain with obstacles :func:`domain_keys` (less
+        :data:`START_KEYS` without the initial density); only
+        ``phat_smoothed_target_l2`` without robots.
         """
         if not self.has_robots:
             return ("phat_smoothed_target_l2",)
         against_limit = ("limit_swarm_l2", "limit_target_l2")
         keys = tuple(k for k in SWARM_KEYS if self.has_limit or k not in against_limit)
-        return keys + domain_keys(self.free)
+        given = domain_keys(self.free)
+        if self.start is None:
+            given = tuple(k for k in given if k not in START_KEYS)
+        return keys + given
 
     @property
     def at_cadence(self) -> dict[str, str]:
@@ -266,6 +290,11 @@ class SwarmTruth:
             out[GAP_KEY] = self.components.gap(fractions)
             for c, value in enumerate(fractions):
                 out[f"component_fraction_{c}"] = float(value)
+        if self.start is not None:
+            out["start_fraction"] = self.start.fraction(rec.positions)
+            moving = self.path.moves
+            mass = self.start.mass_of(self.path.at(rec.t).p) if moving else self.start.target_mass
+            out["start_target_mass"] = mass
         if self.w2_cadence.due(rec.step):
             n = rec.positions.shape[1]
             measure = self.measure(n) if not self.path.moves else self.measure_at(n, rec.t)

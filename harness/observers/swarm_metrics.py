@@ -438,16 +438,47 @@ def free_target_measure(
     return TargetMeasure(np.column_stack([px, py]), w / w.sum())
 
 
-class Components:
+class FreeCells:
+    """The free cell of the control grid that holds each robot.
+
+    A robot belongs to the cell that holds it; a robot in a blocked cell (a cell less
+    than half free still has free space the robots' raster lets them reach) to the free
+    cell whose centre is nearest to it.
+
+    Args:
+        free: Free space.
+    """
+
+    def __init__(self, free: FreeSpace) -> None:
+        from scipy.spatial import cKDTree
+
+        self.free = free
+        g = free.grid
+        self._rows, self._cols = np.nonzero(free.cells)
+        self._tree = cKDTree(np.column_stack([g.x[self._cols], g.y[self._rows]]))
+
+    def cells_of(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The row and column of each robot's free cell, each of shape ``(N,)``."""
+        g = self.free.grid
+        x, y = np.asarray(positions[0], dtype=float), np.asarray(positions[1], dtype=float)
+        col = np.clip(((x - g.x0) / g.dx).astype(np.intp), 0, g.nx - 1)
+        row = np.clip(((y - g.y0) / g.dy).astype(np.intp), 0, g.ny - 1)
+        lost = np.flatnonzero(~self.free.cells[row, col])
+        if lost.size:
+            _, nearest = self._tree.query(np.column_stack([x[lost], y[lost]]))
+            row[lost], col[lost] = self._rows[nearest], self._cols[nearest]
+        return row, col
+
+
+class Components(FreeCells):
     """The robots in each connected component of free space against the target's mass
     there.
 
-    A robot belongs to the component of the free cell that holds it; a robot in a
-    blocked cell (a cell less than half free still has free space the robots' raster
-    lets them reach) to the component of the free cell whose centre is nearest to it.
-    ``gap`` is ``max_c |robots' fraction in c - p_*'s mass in c|`` (dimensionless, in
-    ``[0, 1]``): 0 when every component holds its share of the swarm, 1 when the whole
-    swarm sits in a component the target gives no mass.
+    A robot belongs to the component of its free cell (:class:`FreeCells`: the cell
+    that holds it, or for a robot in a blocked cell the free cell whose centre is
+    nearest). ``gap`` is ``max_c |robots' fraction in c - p_*'s mass in c|``
+    (dimensionless, in ``[0, 1]``): 0 when every component holds its share of the swarm,
+    1 when the whole swarm sits in a component the target gives no mass.
 
     Args:
         p: The target's cell values (1 / length^2; 0 on blocked cells).
@@ -455,30 +486,16 @@ class Components:
     """
 
     def __init__(self, p: np.ndarray, free: FreeSpace) -> None:
-        from scipy.spatial import cKDTree
-
-        self.free = free
+        super().__init__(free)
         g = free.grid
         labels = free.labels
         self.n = free.n_components
         total = np.bincount(labels[free.cells], np.asarray(p)[free.cells] * g.cell_area, self.n)
         self.masses = total / total.sum()
-        rows, cols = np.nonzero(free.cells)
-        self._labels = labels[rows, cols]
-        self._tree = cKDTree(np.column_stack([g.x[cols], g.y[rows]]))
 
     def of(self, positions: np.ndarray) -> np.ndarray:
         """The component of each robot, shape ``(N,)``."""
-        g = self.free.grid
-        x, y = np.asarray(positions[0], dtype=float), np.asarray(positions[1], dtype=float)
-        col = np.clip(((x - g.x0) / g.dx).astype(np.intp), 0, g.nx - 1)
-        row = np.clip(((y - g.y0) / g.dy).astype(np.intp), 0, g.ny - 1)
-        out = self.free.labels[row, col].copy()
-        lost = np.flatnonzero(out < 0)
-        if lost.size:
-            _, nearest = self._tree.query(np.column_stack([x[lost], y[lost]]))
-            out[lost] = self._labels[nearest]
-        return out
+        return self.free.labels[self.cells_of(positions)]
 
     def fractions(self, positions: np.ndarray) -> np.ndarray:
         """The fraction of the robots in each component, shape ``(n_components,)``."""
@@ -488,3 +505,56 @@ class Components:
     def gap(self, fractions: np.ndarray) -> float:
         """``max_c |fractions[c] - masses[c]|`` (dimensionless)."""
         return float(np.max(np.abs(np.asarray(fractions) - self.masses)))
+
+
+SUPPORT_MASS = 1e-12
+"""The least mass of the initial density a cell holds to be in its support
+(:class:`StartRegion`): above the round-off of a cell that only touches the edge of a
+box."""
+
+
+class StartRegion(FreeCells):
+    """The robots still in the region where the swarm started, against the target's
+    mass there.
+
+    The region ``S`` is the support of the initial density on the control grid: the
+    free cells that hold more than :data:`SUPPORT_MASS` of its mass (for
+    ``init=left_room`` the cells that the box ``[0.08, 0.42] x [0.15, 0.85]`` overlaps;
+    a cell that only touches a box's edge holds round-off, not mass). A robot is in
+    ``S`` when its free cell is (:class:`FreeCells`).
+
+    * :meth:`fraction`: ``#{k : X_k in S} / N`` (dimensionless, in ``[0, 1]``), 1 at the
+      start;
+    * ``target_mass``: ``sum_{c in S} p_*(c) dx dy`` over the target on free space
+      (unit mass there; dimensionless): the fraction a swarm distributed as ``p_*``
+      keeps in ``S``.
+
+    Args:
+        init: The initial density's cell values on the control grid (1 / length^2).
+        p: The target's cell values (1 / length^2; 0 on blocked cells).
+        free: Free space.
+
+    Attributes:
+        region: ``(ny, nx)`` booleans, the cells of ``S``.
+        target_mass: ``p_*``'s mass in ``S`` (dimensionless).
+
+    Raises:
+        ValueError: when the initial density has no mass on a free cell.
+    """
+
+    def __init__(self, init: np.ndarray, p: np.ndarray, free: FreeSpace) -> None:
+        super().__init__(free)
+        mass = np.asarray(init, dtype=float) * free.grid.cell_area
+        self.region = free.cells & (mass > SUPPORT_MASS)
+        if not self.region.any():
+            raise ValueError("init: an initial density with mass on a free cell")
+        self.target_mass = self.mass_of(p)
+
+    def mass_of(self, p: np.ndarray) -> float:
+        """``p``'s mass in the region over its mass on free space (dimensionless)."""
+        p = np.asarray(p)
+        return float(p[self.region].sum() / p[self.free.cells].sum())
+
+    def fraction(self, positions: np.ndarray) -> float:
+        """The fraction of the robots in the region (dimensionless)."""
+        return float(self.region[self.cells_of(positions)].mean())

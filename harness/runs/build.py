@@ -600,7 +600,7 @@ def _build(cfg: DictConfig) -> Experiment:
     identity = RunIdentity(data, int(cfg.seed), choices(cfg))
     watching = observers(
         cfg, data, grid=grid, target=target, control=control, plant=plant, limit=limit,
-        estimator=estimator, steps=steps, identity=identity,
+        estimator=estimator, steps=steps, identity=identity, init=init,
     )  # fmt: skip
     keys = {
         f"observers.{name}.{param}": key
