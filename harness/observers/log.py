@@ -23,7 +23,8 @@ Topics (a topic that does not apply to the plant or estimator is absent):
   message per step, the keys of :data:`METRIC_KEYS` in that order (``null`` where not
   applicable; the schema types every key as ``"number"``, see there); on a domain with
   obstacles followed by :func:`harness.observers.swarm.domain_keys`
-  (``component_fraction_gap``, ``component_fraction_<c>``);
+  (``component_fraction_gap``, ``component_fraction_<c>``, ``start_fraction``,
+  ``start_target_mass``);
 * on a domain with obstacles only (``target.free``), once at t = 0:
   ``/domain/mask``, a ``foxglove.Grid`` on the control grid with one uint8 field
   ``free`` (1 on a free cell, 0 on a blocked one), and ``/domain/obstacles``, a
