@@ -188,19 +188,20 @@ def _stale_or_holder(lock: Path) -> Holder | None:
     except FileNotFoundError:
         pass
     except OSError as err:
-        what = _kind(before.st_mode) if not stat.S_ISREG(before.st_mode) else "a lock"
         raise LockError(
-            f"{lock} is {what} that cannot be removed ({err.strerror or err}); "
-            "remove it to run here"
+            f"{lock} is {_kind(before.st_mode)} and cannot be removed "
+            f"({err.strerror or err}): remove it by hand"
         ) from None
     return None
 
 
 def _kind(mode: int) -> str:
-    """What a file that is not a regular file is, in words."""
+    """What a lock file that cannot be removed is, in words."""
+    if stat.S_ISREG(mode):
+        return "a stale lock"
     if stat.S_ISDIR(mode):
         return "a directory, not a lock file,"
-    return "not a regular file, not a lock file,"
+    return "not a regular file, so not a lock file,"
 
 
 def check_dir_name(key: str, path: Path) -> None:
