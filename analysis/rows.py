@@ -210,7 +210,9 @@ def varied(rows: list[dict[str, Any]]) -> list[str]:
     the seed (a key equal to ``seed`` in every row that has it, such as
     ``control.seed: ${seed}``) and a group's class path where the group's option names
     it (``plant._target_`` beside ``plant``; ``control._target_`` beside ``law``).
+    Only rows whose config was read count: a job without a readable log varies nothing.
     """
+    rows = [r for r in rows if any(k.startswith(CONFIG_PREFIX) for k in r)]
     out = []
     for key in _keys(rows):
         if key.startswith(("log.", "observers.")) or _copies_seed(rows, key):

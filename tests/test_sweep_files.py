@@ -252,8 +252,9 @@ def test_a_job_whose_log_is_missing_dangling_or_a_link_loop_counts_as_not_comple
     tmp_path, compose, capsys, log
 ):
     """The broken job is a row ``unreadable: no run log at ...`` beside the completed
-    one, and the analysis counts it as not completed; directories that are no job's
-    (the analysis output, a link loop) are no rows."""
+    one, and the analysis counts it as not completed, without making any config key
+    vary; directories that are no job's (the analysis output, a link loop) are no
+    rows."""
     from analysis.rows import analyse
     from analysis.sweep import main
     from harness.runs.run import run
@@ -284,3 +285,5 @@ def test_a_job_whose_log_is_missing_dangling_or_a_link_loop_counts_as_not_comple
     assert "2 jobs, 1 not completed" in capsys.readouterr().out
     csv_rows = list(csv.DictReader(open(out / "sweep.csv")))
     assert sorted(r["dir"] for r in csv_rows) == ["broken", "ok"]
+    header = list(csv_rows[0])
+    assert header[0] == "law", f"a job without a log made config columns: {header}"
