@@ -244,7 +244,7 @@ def test_a_wait_for_a_live_holder_is_said_once_naming_the_pid_and_the_lock(tmp_p
     assert len(said) == 1, err
     assert f"process {sleeper.pid}" in said[0] and str(lock) in said[0], said
     if form != "named":
-        assert "only a process id" in said[0], said
+        assert "names only a process id" in said[0], said
 
 
 @pytest.mark.parametrize("log", ["missing", "dangling link", "link loop", "fifo"])

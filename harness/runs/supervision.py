@@ -307,19 +307,10 @@ def claim_job_dir(out: Path, *, tty: bool = False) -> Iterator[None]:
             continue
         if holder != waited_for:
             waited_for = holder
-            unknown = (
-                ""
-                if holder.known
-                else (
-                    " (the lock names only a process id: if that process is not a job of a "
-                    f"sweep, remove {lock})"
-                )
-            )
-            say(
-                f"waiting for process {holder.pid}, which holds {lock}{unknown}",
-                sys.stderr,
-                tty=tty,
-            )
+            line = f"waiting for process {holder.pid}, which holds {lock}"
+            if not holder.known:
+                line += " (it names only a process id: remove it if that is no sweep's job)"
+            say(line, sys.stderr, tty=tty)
         time.sleep(WAIT_S)
     try:
         yield
