@@ -1,7 +1,9 @@
 """A sweep's jobs as rows, from their logs alone, and the rows aggregated over seeds.
 
-:func:`analyse` reads every job directory below a sweep directory that holds a
-``run.mcap``: its ``config`` record (the resolved config, :mod:`analysis.configs`), its
+:func:`analyse` reads every job directory below a sweep directory (:func:`job_dirs`: one
+holding a ``run.mcap``, a ``job_status.json`` or a ``.hydra/``; a job whose log is
+missing, a dangling link or a link loop is a row ``unreadable: no run log at ...``, not
+completed): its ``config`` record (the resolved config, :mod:`analysis.configs`), its
 ``choices`` record (the option of each config group), its ``status``, ``theory`` and
 ``provenance`` records and its ``/metrics``. Each row holds the job's directory, state,
 statistics (:mod:`analysis.run_stats`), wall time, its whole flattened config under
@@ -26,6 +28,7 @@ Student-t confidence interval of the mean over the seeds, :mod:`analysis.stats`)
 from __future__ import annotations
 
 import csv
+import os
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
@@ -88,6 +91,28 @@ def options(run: RunLog, flat: dict[str, Any]) -> tuple[dict[str, str], bool]:
     return named, recorded
 
 
+LOG_FILE = "run.mcap"
+"""A job's log, in its directory."""
+
+JOB_MARKS = (LOG_FILE, "job_status.json", ".hydra")
+"""The names of which any one makes a directory below a sweep directory a job's: its log,
+the status file the sweep writes (:mod:`harness.runs.status`) and Hydra's record of
+the job's config."""
+
+
+def job_dirs(sweep_dir: Path) -> list[Path]:
+    """The job directories right below ``sweep_dir``, sorted: each directory holding an
+    entry named as one of :data:`JOB_MARKS`, whatever that entry is (a dangling link or a
+    link loop counts; none is followed). A link to a directory is a job directory as the
+    directory is; a link loop in place of a directory is none.
+    """
+    found = []
+    for entry in sorted(sweep_dir.iterdir()):
+        if entry.is_dir() and any(os.path.lexists(entry / mark) for mark in JOB_MARKS):
+            found.append(entry)
+    return found
+
+
 def analyse(
     sweep_dir: Path, tail: float | None = None
 ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
@@ -105,8 +130,8 @@ def analyse(
             the analysis reads.
     """
     rows, series, unnamed = [], {}, 0
-    for log_path in sorted(sweep_dir.glob("*/run.mcap")):
-        job_dir = log_path.parent
+    for job_dir in job_dirs(sweep_dir):
+        log_path = job_dir / LOG_FILE
         row: dict[str, Any] = {"dir": job_dir.name}
         try:
             with warnings.catch_warnings():
@@ -185,7 +210,9 @@ def varied(rows: list[dict[str, Any]]) -> list[str]:
     the seed (a key equal to ``seed`` in every row that has it, such as
     ``control.seed: ${seed}``) and a group's class path where the group's option names
     it (``plant._target_`` beside ``plant``; ``control._target_`` beside ``law``).
+    Only rows whose config was read count: a job without a readable log varies nothing.
     """
+    rows = [r for r in rows if any(k.startswith(CONFIG_PREFIX) for k in r)]
     out = []
     for key in _keys(rows):
         if key.startswith(("log.", "observers.")) or _copies_seed(rows, key):

@@ -2,9 +2,11 @@
 
     python -m analysis.sweep SWEEP_DIR [--out DIR] [--tail 0.25] [--mixed-code]
 
-Reads every job directory below ``SWEEP_DIR`` that holds a ``run.mcap``, and only the
-log: its ``config`` record (the resolved config), its ``choices`` record (the option
-of each config group), its ``status`` and ``theory`` records and its ``/metrics``
+Reads every job directory below ``SWEEP_DIR`` (one holding a ``run.mcap``, a
+``job_status.json`` or a ``.hydra/``; a job without a readable log counts as not
+completed, with its reason), and only the log: its ``config`` record (the resolved
+config), its ``choices`` record (the option of each config group), its ``status`` and
+``theory`` records and its ``/metrics``
 (:mod:`analysis.rows`). Writes ``sweep.csv`` (one row per job; every config key whose
 value differs between the jobs is a column, ``law`` holds the option of the control
 law and ``plant``, ``estimator``, ... the options of the other config groups when they
@@ -158,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {args.sweep_dir}: {problem}", file=sys.stderr)
         return 2
     if not rows:
-        print(f"error: no run.mcap below {args.sweep_dir}", file=sys.stderr)
+        print(f"error: no job directory below {args.sweep_dir}", file=sys.stderr)
         return 2
     codes = mixed_code(rows)
     if codes and not args.mixed_code:

@@ -328,7 +328,7 @@ def test_a_sweep_s_status_run_and_lock_files_are_read_without_blocking(tmp_path,
     or its lock is read as malformed (empty, 0), never opened blocking or read whole."""
 
     from harness.runs.status import STATUS_FILE, read_status
-    from harness.runs.supervision import _lock_holder
+    from harness.runs.supervision import read_lock
     from harness.runs.sweep_progress import RUN_FILE, read_run
 
     paths = [tmp_path / STATUS_FILE, tmp_path / RUN_FILE, tmp_path / "lock"]
@@ -340,7 +340,7 @@ def test_a_sweep_s_status_run_and_lock_files_are_read_without_blocking(tmp_path,
     result: list[object] = []
     reader = threading.Thread(
         target=lambda: result.extend(
-            [read_status(tmp_path), read_run(tmp_path), _lock_holder(paths[2])]
+            [read_status(tmp_path), read_run(tmp_path), read_lock(paths[2]).pid]
         ),
         daemon=True,
     )

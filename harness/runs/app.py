@@ -64,6 +64,7 @@ from harness.runs.run import RunResult, check_writes_log, run
 from harness.runs.status import STATUS_FILE, as_int, read_status, report, write_status
 from harness.runs.supervision import (
     Handoff,
+    LockError,
     check_dir_name,
     claim_job_dir,
     claim_run_dir,
@@ -328,7 +329,9 @@ def run_job(
     cfg: DictConfig, out: Path, job: int, overrides: list[str], sweep_dir: Path | None = None
 ) -> RunResult | None:
     """One job of a multirun: skip when its log counts (:func:`harness.runs.resume.judge`);
-    otherwise run it in a process of its own; never raise on failure; keep status.
+    otherwise run it in a process of its own; never raise on failure; keep status. A
+    job whose directory's lock cannot be taken (a directory named ``.job.lock``) is
+    ``failed``, with the reason naming the lock, and nothing of it runs.
 
     The job's ``job_status.json`` (:mod:`harness.runs.status`) also says when it started
     and ended (``started_at``, ``ended_at``: Unix time, s), whether it was ``skipped``
@@ -356,13 +359,20 @@ def run_job(
     if tty and automatic(OmegaConf.select(cfg, "log.progress")):
         with read_write(cfg), open_dict(cfg):
             OmegaConf.update(cfg, "log.progress", "off")  # the sweep's line is on the terminal
-    with claim_job_dir(out):
-        started = {"sweep_run": sweep.get("id", ""), "started_at": time.time()}
-        write_status(out, **started, ended_at=None, skipped=False, **ident)
-        try:
-            _resume_or_run(cfg, out, ident, now_code, tty)
-        finally:
-            write_status(out, ended_at=time.time())
+    try:
+        with claim_job_dir(out, tty=tty):
+            started = {"sweep_run": sweep.get("id", ""), "started_at": time.time()}
+            write_status(out, **started, ended_at=None, skipped=False, **ident)
+            try:
+                _resume_or_run(cfg, out, ident, now_code, tty)
+            finally:
+                write_status(out, ended_at=time.time())
+    except LockError as err:  # a lock that cannot be taken: this job fails, the others run
+        reason = f"cannot claim its directory: {err}"
+        say(f"job {job}: {reason}", sys.stderr, tty=tty)
+        now = {"sweep_run": sweep.get("id", ""), "started_at": time.time()}
+        now.update(ended_at=now["started_at"], skipped=False, state="failed", reason=reason)
+        write_status(out, **now, pid=0, **ident)
     return None
 
 

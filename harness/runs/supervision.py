@@ -1,12 +1,17 @@
 """Job supervision: claiming a run's or a job's directory, running a job in a process of
 its own, and stopping a sweep's running jobs.
 
-* A single run claims its directory with ``.run.lock`` (:func:`claim_run_dir`, holding
-  its process id) before Hydra writes anything, so two runs never share one; a job of a
-  sweep holds ``.job.lock`` while it runs (:func:`claim_job_dir`), so a second process
-  with the same directory (a concurrent sweep into the same ``hydra.sweep.dir``, or
-  points differing only in presentation keys) waits for the first, then resumes by
-  content. A lock whose process is gone is taken over.
+* A single run claims its directory with ``.run.lock`` (:func:`claim_run_dir`) before
+  Hydra writes anything, so two runs never share one; a job of a sweep holds
+  ``.job.lock`` while it runs (:func:`claim_job_dir`), so a second process with the
+  same directory (a concurrent sweep into the same ``hydra.sweep.dir``, or points
+  differing only in presentation keys) waits for the first, saying once on standard
+  error for whom, then resumes by content. A lock names its holder (:class:`Holder`):
+  the process id, the process's start time and the boot id, so a lock whose process is
+  gone is taken over even when its process id now belongs to another process (after a
+  reboot, or a sweep killed with SIGKILL). A lock that is not a regular file and cannot
+  be removed (a directory) is a :class:`LockError` naming it: the run is refused, the
+  job fails with that reason, never a wait.
 * A job runs in a process of its own (:func:`run_isolated`, forked from the launcher's
   worker, which only waits), so a job killed by the kernel's out-of-memory killer or by
   hand costs only itself: the worker records it as ``killed`` and the other jobs go on.
@@ -24,10 +29,12 @@ import contextlib
 import multiprocessing
 import os
 import signal
+import stat
 import sys
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -40,11 +47,161 @@ from harness.runs.run import Terminated, run
 from harness.runs.status import STATUS_FILE, alive, as_int, read_status, write_status
 
 RUN_LOCK = ".run.lock"
-"""The file (holding the process id) by which a single run claims its directory."""
+"""The file (naming its holder, :class:`Holder`) by which a single run claims its
+directory."""
 
 
 LOCK_FILE = ".job.lock"
-"""The file (holding the process id) a job of a sweep holds while it runs."""
+"""The file (naming its holder, :class:`Holder`) a job of a sweep holds while it runs."""
+
+
+BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
+"""Where Linux gives the boot id (a new one at every boot)."""
+
+
+WAIT_S = 0.5
+"""How often (s) a job waiting for its directory's lock looks at it again."""
+
+
+class LockError(OSError):
+    """A lock file that cannot be taken: not a regular file, and it cannot be removed
+    (a directory), or a stale lock that cannot be removed; ``str()`` is one line naming
+    the file.
+    """
+
+
+@dataclass(frozen=True)
+class Holder:
+    """Who holds a lock: a process id, and what tells that process from a later one
+    given the same id.
+
+    A lock file holds one line, ``PID START BOOT``: the process's start time (field 22
+    of ``/proc/PID/stat``, clock ticks since boot) and the boot id, each ``-`` where
+    there is no ``/proc`` to read them from. A lock holding only a process id is read
+    too (``START`` and ``BOOT`` unknown).
+
+    Attributes:
+        pid: The process id (0: none, the lock is malformed or unreadable).
+        start: The process's start time, "" when unknown.
+        boot: The boot id of the system it ran on, "" when unknown.
+    """
+
+    pid: int
+    start: str = ""
+    boot: str = ""
+
+    @classmethod
+    def of(cls, pid: int) -> Holder:
+        """The holder that process ``pid`` (running now) is."""
+        return cls(pid, process_start(pid), boot_id())
+
+    def line(self) -> str:
+        """The lock file's text."""
+        return f"{self.pid} {self.start or '-'} {self.boot or '-'}\n"
+
+    @property
+    def known(self) -> bool:
+        """Whether the lock tells its process from a later one with the same id."""
+        return bool(self.start or self.boot)
+
+    def holds(self) -> bool:
+        """Whether the process that wrote the lock is running: its process id is alive
+        and, where the lock and the system say them, the boot id and start time are the
+        ones the lock names (an alive process id is taken as the holder when they are
+        unknown).
+        """
+        if self.pid <= 0 or not alive(self.pid):
+            return False
+        if self.boot and boot_id() not in ("", self.boot):
+            return False  # written before a reboot
+        return not self.start or process_start(self.pid) in ("", self.start)
+
+
+def _proc_text(path: Path) -> str:
+    """The text of a ``/proc`` file ("" when there is none or it cannot be read)."""
+    try:
+        return read_text(path, SMALL_FILE_BYTES).strip()
+    except OSError:
+        return ""
+
+
+def boot_id() -> str:
+    """This system's boot id ("" without ``/proc``)."""
+    return _proc_text(BOOT_ID)
+
+
+def process_start(pid: int) -> str:
+    """The start time of process ``pid`` (field 22 of ``/proc/PID/stat``, clock ticks
+    since boot; "" when it cannot be read).
+    """
+    fields = _proc_text(Path(f"/proc/{pid}/stat")).rsplit(")", 1)[-1].split()
+    return fields[19] if len(fields) > 19 and fields[19].isdigit() else ""
+
+
+def read_lock(lock: Path) -> Holder:
+    """The holder a lock file names (pid 0 when it is not a regular file, cannot be
+    read or is malformed: no holder).
+    """
+    try:
+        fields = read_text(lock, SMALL_FILE_BYTES).split()
+    except OSError:
+        return Holder(0)
+    if not fields or not fields[0].isdigit() or len(fields) > 3:
+        return Holder(0)
+    start, boot = (*fields[1:], "-", "-")[:2]
+    return Holder(int(fields[0]), "" if start == "-" else start, "" if boot == "-" else boot)
+
+
+def _create_lock(lock: Path) -> bool:
+    """Create ``lock`` exclusively, naming this process; False when it exists."""
+    try:
+        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+        return False
+    try:
+        with contextlib.suppress(OSError):  # a full disk: the lock exists, unnamed
+            os.write(fd, Holder.of(os.getpid()).line().encode())
+    finally:
+        os.close(fd)
+    return True
+
+
+def _stale_or_holder(lock: Path) -> Holder | None:
+    """Look at the existing ``lock``: None when it was stale (no holder, or its holder
+    is gone or is this process) and has been removed, or is gone already; else the
+    running holder.
+
+    Raises:
+        LockError: for a lock that cannot be removed (a directory), naming it.
+    """
+    try:
+        before = os.lstat(lock)
+    except FileNotFoundError:
+        return None
+    holder = read_lock(lock)
+    if holder.pid != os.getpid() and holder.holds():
+        return holder
+    try:
+        now = os.lstat(lock)
+        if (now.st_dev, now.st_ino) == (before.st_dev, before.st_ino):
+            lock.unlink()  # stale (the same file that was read): its process is gone
+    except FileNotFoundError:
+        pass
+    except OSError as err:
+        raise LockError(
+            f"{lock} is {_kind(before.st_mode)} and cannot be removed "
+            f"({err.strerror or err}): remove it by hand"
+        ) from None
+    return None
+
+
+def _kind(mode: int) -> str:
+    """What a lock file that cannot be removed is, in words."""
+    if stat.S_ISREG(mode):
+        return "a stale lock"
+    if stat.S_ISDIR(mode):
+        return "a directory, not a lock file,"
+    return "not a regular file, so not a lock file,"
 
 
 def check_dir_name(key: str, path: Path) -> None:
@@ -84,37 +241,32 @@ def usable_dir(key: str, path: Path) -> None:
 
 def claim_run_dir(out: Path) -> None:
     """Create ``out`` and claim it for this process: ``.run.lock`` created exclusively
-    (a lock left by a process that is gone is taken over) and removed when the process
-    ends; the run's log is created exclusively too (:func:`harness.runs.run.run`).
+    (a lock whose process is gone is taken over, :class:`Holder`) and removed when the
+    process ends; the run's log is created exclusively too (:func:`harness.runs.run.run`).
 
     Raises:
         ConfigError: for a directory that cannot be created or written (a path under a
-            file, a read-only file system, ``/dev/null``), or one another running
-            process has claimed.
+            file, a read-only file system, ``/dev/null``), one another running process
+            has claimed, or one whose lock cannot be removed (a directory named
+            ``.run.lock``).
     """
     lock = out / RUN_LOCK
     try:
         out.mkdir(parents=True, exist_ok=True)
         if not out.is_dir():
             raise NotADirectoryError(20, "not a directory", str(out))
-        while True:
-            try:
-                fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-                break
-            except FileExistsError:
-                holder = _lock_holder(lock)
-                if holder and holder != os.getpid() and alive(holder):
-                    raise ConfigError(
-                        "hydra.run.dir",
-                        str(out),
-                        f"a directory no other run is using (process {holder} runs there)",
-                    ) from None
-                with contextlib.suppress(FileNotFoundError):
-                    lock.unlink()  # stale: its process is gone
-        try:
-            os.write(fd, str(os.getpid()).encode())
-        finally:
-            os.close(fd)
+        while not _create_lock(lock):
+            holder = _stale_or_holder(lock)
+            if holder is not None:
+                raise ConfigError(
+                    "hydra.run.dir",
+                    str(out),
+                    f"a directory no other run is using (process {holder.pid} runs there)",
+                )
+    except LockError as err:
+        raise ConfigError(
+            "hydra.run.dir", str(out), f"a directory whose {RUN_LOCK} can be taken ({err})"
+        ) from None
     except OSError as err:
         raise ConfigError(
             "hydra.run.dir",
@@ -124,43 +276,43 @@ def claim_run_dir(out: Path) -> None:
     atexit.register(_release, lock, os.getpid())
 
 
-def _lock_holder(lock: Path) -> int:
-    """The process id in a lock file (0 when unreadable)."""
-    try:
-        return int(read_text(lock, SMALL_FILE_BYTES).strip() or "0")
-    except (OSError, ValueError):
-        return 0
-
-
 def _release(lock: Path, pid: int) -> None:
     """Remove ``lock`` if process ``pid`` (this one, not a forked child) holds it."""
-    if os.getpid() == pid and _lock_holder(lock) == pid:
+    if os.getpid() == pid and read_lock(lock).pid == pid:
         with contextlib.suppress(OSError):
             lock.unlink()
 
 
 @contextlib.contextmanager
-def claim_job_dir(out: Path) -> Iterator[None]:
+def claim_job_dir(out: Path, *, tty: bool = False) -> Iterator[None]:
     """Hold the job directory's lock file (:data:`LOCK_FILE`) while the job runs: a
-    second process with the same directory waits for the first (polling every 0.5 s),
-    then resumes by content.
+    second process with the same directory waits for the first (looking every
+    :data:`WAIT_S` s), saying once on standard error which process it waits for, then
+    resumes by content. A lock whose process is gone (:meth:`Holder.holds`) is taken
+    over.
+
+    Args:
+        out: The job's directory.
+        tty: Whether the sweep's progress line is on a terminal (:func:`say`).
+
+    Raises:
+        LockError: for a lock that cannot be removed (a directory named
+            :data:`LOCK_FILE`), naming it; nothing has run then.
     """
     lock = out / LOCK_FILE
-    while True:
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            break
-        except FileExistsError:
-            holder = _lock_holder(lock)
-            if holder and holder != os.getpid() and alive(holder):
-                time.sleep(0.5)
-                continue
-            with contextlib.suppress(OSError):
-                lock.unlink()  # stale: its process is gone
+    waited_for: Holder | None = None
+    while not _create_lock(lock):
+        holder = _stale_or_holder(lock)
+        if holder is None:
+            continue
+        if holder != waited_for:
+            waited_for = holder
+            line = f"waiting for process {holder.pid}, which holds {lock}"
+            if not holder.known:
+                line += " (it names only a process id: remove it if that is no sweep's job)"
+            say(line, sys.stderr, tty=tty)
+        time.sleep(WAIT_S)
     try:
-        with contextlib.suppress(OSError):  # a full disk: the lock exists, unnamed
-            os.write(fd, str(os.getpid()).encode())
-        os.close(fd)
         yield
     finally:
         with contextlib.suppress(OSError):
