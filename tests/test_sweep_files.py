@@ -287,3 +287,22 @@ def test_a_job_whose_log_is_missing_dangling_or_a_link_loop_counts_as_not_comple
     assert sorted(r["dir"] for r in csv_rows) == ["broken", "ok"]
     header = list(csv_rows[0])
     assert header[0] == "law", f"a job without a log made config columns: {header}"
+
+
+def test_a_lock_appears_whole_and_leaves_no_file_of_its_own(tmp_path, monkeypatch):
+    """The lock is linked into place already naming its holder: at the moment its name
+    exists it reads as this process (no window in which it reads empty, i.e. stale)."""
+    from harness.runs import supervision
+
+    seen = []
+    real_link = os.link
+
+    def watching_link(src, dst, *args, **kwargs):
+        real_link(src, dst, *args, **kwargs)
+        seen.append(supervision.read_lock(Path(dst)))  # the instant the name exists
+
+    monkeypatch.setattr(supervision.os, "link", watching_link)
+    with claim_job_dir(tmp_path):
+        assert seen and seen[0].pid == os.getpid() and seen[0].holds()
+        assert sorted(p.name for p in tmp_path.iterdir()) == [LOCK_FILE]
+    assert not any(tmp_path.iterdir())

@@ -153,17 +153,36 @@ def read_lock(lock: Path) -> Holder:
 
 
 def _create_lock(lock: Path) -> bool:
-    """Create ``lock`` exclusively, naming this process; False when it exists."""
+    """Create ``lock`` exclusively, naming this process; False when it exists.
+
+    The lock is written whole to a file of this process's own and hard-linked into
+    place (``link`` fails when the name exists), so no other claimer ever reads it empty
+    and takes it for stale. Where the file cannot be written (a full disk), the lock is
+    created empty with ``O_EXCL``, as a lock naming no holder.
+    """
+    own = lock.with_name(f"{lock.name}.{os.getpid()}.tmp")
     try:
-        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-    except FileExistsError:
-        return False
-    try:
-        with contextlib.suppress(OSError):  # a full disk: the lock exists, unnamed
-            os.write(fd, Holder.of(os.getpid()).line().encode())
+        try:
+            own.unlink(missing_ok=True)
+            fd = os.open(own, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            try:
+                os.write(fd, Holder.of(os.getpid()).line().encode())
+            finally:
+                os.close(fd)
+        except OSError:  # a full disk or a file system without room: an unnamed lock
+            try:
+                os.close(os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644))
+            except FileExistsError:
+                return False
+            return True
+        try:
+            os.link(own, lock)
+        except FileExistsError:
+            return False
+        return True
     finally:
-        os.close(fd)
-    return True
+        with contextlib.suppress(OSError):
+            own.unlink()
 
 
 def _stale_or_holder(lock: Path) -> Holder | None:
