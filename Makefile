@@ -99,7 +99,7 @@ STUDIES := laws_n laws_iss heat_floor laws_noise robots link conv_grid conv_sigm
 # paper's and the heat law's gain under smooth errors from the paper's start; the smooth
 # panel of laws_iss measures the same from p_*), debias_n (the paper's loop against the
 # debiased loop up to N = 16384, about 12 min) and domains (every law on the rooms and
-# the obstacles, N = 1024 and 4096, three seeds, 60 s: about 1.5 h on 2 cores)
+# the obstacles, N = 1024 and 4096, three seeds, 60 s: 49 min on 2 cores)
 EXTRA_STUDIES := distributed_r conv_grid_agents iss_gain debias_n domains
 # distributed_frontier (the decentralised designs against the radius and the rounds, with
 # the centralised loop they are measured against; about 45 min on 2 cores) has a rule of
