@@ -104,12 +104,16 @@ def job_dirs(sweep_dir: Path) -> list[Path]:
     """The job directories right below ``sweep_dir``, sorted: each directory holding an
     entry named as one of :data:`JOB_MARKS`, whatever that entry is (a dangling link or a
     link loop counts; none is followed). A link to a directory is a job directory as the
-    directory is; a link loop in place of a directory is none.
+    directory is, once: entries naming the same directory (a link to another job) count
+    as the first of them; a link loop in place of a directory is none.
     """
-    found = []
+    found, seen = [], set()
     for entry in sorted(sweep_dir.iterdir()):
         if entry.is_dir() and any(os.path.lexists(entry / mark) for mark in JOB_MARKS):
-            found.append(entry)
+            where = os.path.realpath(entry)
+            if where not in seen:
+                seen.add(where)
+                found.append(entry)
     return found
 
 

@@ -329,3 +329,22 @@ def test_an_obstacle_outside_the_square_is_refused_naming_it(kwargs, name):
     with pytest.raises(ParameterError) as err:
         dom.resolve(Grid.square(12))
     assert err.value.name == name and "outside" in str(err.value)
+
+
+def test_a_16_bit_mask_s_transparent_level_is_free(tmp_path):
+    """A 16-bit grey mask whose tRNS marks its background level transparent: the
+    background is free as in 8 bits, the dark patch is blocked."""
+    image = np.full((16, 16), 1000, dtype=np.uint16)  # dark, but transparent
+    image[6:10, 6:10] = 500  # dark and opaque
+    path = tmp_path / "patch16.png"
+    Image.fromarray(image).save(path, transparency=1000)
+    dom = Mask(path=str(path))
+    assert dom.blocked(np.array([0.5, 0.1]), np.array([0.5, 0.1]), 1.0).tolist() == [True, False]
+
+
+def test_a_disc_touching_the_square_from_outside_is_refused():
+    """Touching is no area: as for polygons."""
+    dom = Obstacles(discs=[{"center": [-0.1, 0.5], "radius": 0.1}], polygons=[])
+    with pytest.raises(ParameterError) as err:
+        dom.resolve(Grid.square(12))
+    assert err.value.name == "discs[0]" and "outside" in str(err.value)

@@ -306,3 +306,27 @@ def test_a_lock_appears_whole_and_leaves_no_file_of_its_own(tmp_path, monkeypatc
         assert seen and seen[0].pid == os.getpid() and seen[0].holds()
         assert sorted(p.name for p in tmp_path.iterdir()) == [LOCK_FILE]
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("pid", ["4294967296", "99999999999999999999999", "4194305"])
+def test_a_lock_naming_an_impossible_process_id_names_no_holder(tmp_path, pid):
+    """No process has such an id: the lock is stale and taken over, never an error."""
+    from harness.runs.status import alive
+    from harness.runs.supervision import read_lock
+
+    lock = tmp_path / LOCK_FILE
+    lock.write_text(f"{pid} 1 2\n")
+    assert read_lock(lock).pid == 0
+    assert alive(int(pid)) is False
+    with claim_job_dir(tmp_path):
+        assert read_lock(lock).pid == os.getpid()
+
+
+def test_a_link_to_another_job_is_counted_once(tmp_path):
+    from analysis.rows import job_dirs
+
+    for name in ("a", "b"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "job_status.json").write_text("{}")
+    (tmp_path / "c").symlink_to(tmp_path / "b", target_is_directory=True)
+    assert [p.name for p in job_dirs(tmp_path)] == ["a", "b"]

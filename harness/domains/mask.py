@@ -119,7 +119,12 @@ def grey_levels(image: Any) -> np.ndarray:
     from PIL import Image
 
     if image.mode in SIXTEEN_BIT_MODES:
-        return np.asarray(image, dtype=float) / 65535.0
+        levels = np.asarray(image)
+        grey = levels.astype(float) / 65535.0
+        clear = image.info.get("transparency")  # tRNS: the one level that is transparent
+        if isinstance(clear, int) and not isinstance(clear, bool):
+            grey[levels == clear] = 1.0
+        return grey
     if image.mode in ("LA", "RGBA", "PA", "La", "RGBa") or "transparency" in image.info:
         rgba = image.convert("RGBA")
         image = Image.alpha_composite(Image.new("RGBA", rgba.size, (255, 255, 255, 255)), rgba)

@@ -49,7 +49,7 @@ class Obstacles(Domain):
         """
         side = box(grid.x0, grid.y0, grid.x1, grid.y1)
         for i, ((cx, cy), r) in enumerate(self.discs):
-            if not Point(cx, cy).buffer(r).intersects(side):
+            if not Point(cx, cy).buffer(r).intersection(side).area > 0:
                 raise ParameterError(f"discs[{i}]", {"center": [cx, cy], "radius": r}, INSIDE)
         for i, vertices in enumerate(self.polygons):
             if not ShapelyPolygon(vertices).intersection(side).area > 0:

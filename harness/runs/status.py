@@ -112,7 +112,7 @@ def alive(pid: int) -> bool:
     """Whether process ``pid`` exists (and is not a zombie)."""
     try:
         os.kill(pid, 0)
-    except ProcessLookupError:
+    except (ProcessLookupError, OverflowError, ValueError):  # none, or no process id
         return False
     except PermissionError:
         return True

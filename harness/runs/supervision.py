@@ -138,6 +138,11 @@ def process_start(pid: int) -> str:
     return fields[19] if len(fields) > 19 and fields[19].isdigit() else ""
 
 
+PID_MAX = 1 << 22
+"""Largest process id Linux gives (``PID_MAX_LIMIT`` on 64-bit systems); a lock naming a
+larger one names no process."""
+
+
 def read_lock(lock: Path) -> Holder:
     """The holder a lock file names (pid 0 when it is not a regular file, cannot be
     read or is malformed: no holder).
@@ -146,8 +151,10 @@ def read_lock(lock: Path) -> Holder:
         fields = read_text(lock, SMALL_FILE_BYTES).split()
     except OSError:
         return Holder(0)
-    if not fields or not fields[0].isdigit() or len(fields) > 3:
+    if not fields or not fields[0].isdigit() or len(fields) > 3 or len(fields[0]) > 10:
         return Holder(0)
+    if int(fields[0]) > PID_MAX:
+        return Holder(0)  # no process has such an id
     start, boot = (*fields[1:], "-", "-")[:2]
     return Holder(int(fields[0]), "" if start == "-" else start, "" if boot == "-" else boot)
 
