@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.compiled.caching import package_stamp
+from harness.compiled import package_stamp
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,7 +36,7 @@ import sys
 from pathlib import Path
 sys.path.insert(0, {root!r})
 if {stamped}:
-    from harness.compiled.caching import stamp_by_package
+    from harness.compiled import stamp_by_package
     stamp_by_package(Path({pkg!r}))
 sys.path.insert(0, {here!r})
 from pkg.caller import read

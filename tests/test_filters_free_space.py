@@ -19,8 +19,8 @@ from harness.estimators.filters.common import (
     correlations_from_factors,
 )
 from harness.estimators.filters.estimator import FilterEstimator
+from harness.estimators.filters.free_poisson import FreePoisson
 from harness.estimators.filters.local import LocalFilters
-from harness.estimators.filters.poisson import FreePoisson
 from harness.estimators.smoothing import Smoother
 from harness.fokker_planck import FokkerPlanck
 from harness.grid import Grid

@@ -25,6 +25,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "harness.velocity",
         "harness.parameters",
         "harness.files",
+        "harness.png",
         "harness.fokker_planck",
         "harness.exact_solutions",
         "harness.domains",

@@ -316,7 +316,7 @@ def test_an_integer_for_a_float_reaches_the_components_as_that_float(compose):
 
 
 def test_ints_become_floats_only_where_a_float_is_declared():
-    from harness.runs.build import as_declared
+    from harness.runs.declared import as_declared
 
     class Part:
         def __init__(

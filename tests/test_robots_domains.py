@@ -44,7 +44,8 @@ def random_layout(seed: int, resolution: int = 256) -> Obstacles:
     for _ in range(rng.integers(1, 4)):
         c = rng.uniform(0.15, 0.85, 2)
         k = int(rng.integers(3, 6))
-        angles = np.sort(rng.uniform(0, 2 * np.pi, k))
+        # one angle in each of k equal sectors about c: a simple (star-shaped) polygon
+        angles = (np.arange(k) + rng.uniform(0.1, 0.9, k)) * (2 * np.pi / k)
         radii = rng.uniform(0.03, 0.12, k)
         polygons.append((c + radii[:, None] * np.c_[np.cos(angles), np.sin(angles)]).tolist())
     # a thin bar, a few squares of the map wide, that a long step would jump

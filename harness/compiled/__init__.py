@@ -12,7 +12,7 @@
 
 Each loop has a numpy, sparse or LAPACK statement, named in its docstring, that tests
 compare against. Loops are compiled on first use and cached on disk next to their
-module, keyed by the source of the whole package (:mod:`~harness.compiled.caching`). A
+module, keyed by the source of the whole package (:func:`stamp_by_package`). A
 loop run serially on small inputs and in parallel on large ones has both builds in one
 :class:`SerialParallel`.
 """
@@ -31,15 +31,12 @@ from typing import Any
 # a few ms takes hundreds. Read when numba first starts its OpenMP layer.
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
+import functools
+import hashlib
 from pathlib import Path
 
 import numba
-
-from harness.compiled.caching import stamp_by_package
-
-# a loop's cache entry is keyed by every module of this package, not only its own: the
-# robots' steps call obstacles.avoid, which numba would not see change
-stamp_by_package(Path(__file__).parent)
+from numba.core import caching
 
 PARALLEL_MIN_CELLS = 1 << 16
 """Fewer cells (values, for several columns) run the serial build of the Jacobi series,
@@ -102,3 +99,71 @@ class SerialParallel:
             if size(args[position]) < self.min_size:
                 return self.serial(*args)
         return self.parallel(*args)
+
+
+# --- the disk cache, keyed by the whole package's source --------------------------------
+# numba keys a compiled function's cache entry by a hash of the one file that defines it.
+# A loop that calls a compiled function of another module (the robots' step calls
+# obstacles.avoid) would be loaded with the callee it was compiled with after the callee's
+# module changed: numba does not track calls between modules. stamp_by_package keys every
+# function of this package by the hash of all its .py files, so an edit of any of them
+# recompiles the package's loops once. It relies on numba's cache locators
+# (numba.core.caching, numba >= 0.68, whose source stamps are content hashes).
+
+
+def package_stamp(directory: Path) -> bytes:
+    """The SHA-256 of the names and bytes of every ``.py`` file in ``directory`` (not
+    its subdirectories), in name order; re-read when a file's size or time changes.
+    """
+    files = sorted(directory.glob("*.py"))
+    stats = tuple((f.name, f.stat().st_mtime_ns, f.stat().st_size) for f in files)
+    return _stamp(str(directory), stats)
+
+
+@functools.lru_cache(maxsize=64)
+def _stamp(directory: str, stats: tuple[tuple[str, int, int], ...]) -> bytes:
+    digest = hashlib.sha256()
+    for name, _, _ in stats:
+        digest.update(name.encode() + b"\0")
+        digest.update((Path(directory) / name).read_bytes() + b"\0")
+    return digest.digest()
+
+
+def _locator(base: type, directory: Path) -> type:
+    """A subclass of the numba locator ``base`` that answers only for functions defined
+    in ``directory`` and stamps them with :func:`package_stamp`.
+    """
+
+    class PackageStamped(base):
+        @classmethod
+        def from_function(cls, py_func: Any, py_file: str) -> Any:
+            if Path(os.path.abspath(py_file)).parent != directory:
+                return None
+            return super().from_function(py_func, py_file)
+
+        def get_source_stamp(self) -> Any:
+            return package_stamp(directory)
+
+    PackageStamped.__name__ = PackageStamped.__qualname__ = f"PackageStamped{base.__name__}"
+    return PackageStamped
+
+
+def stamp_by_package(directory: Path) -> None:
+    """Key the on-disk cache of every compiled function defined in ``directory`` by
+    :func:`package_stamp` of it, wherever numba would put it (``NUMBA_CACHE_DIR`` when
+    set, else the directory's ``__pycache__``). Idempotent.
+    """
+    directory = Path(os.path.abspath(directory))
+    classes = caching.CacheImpl._locator_classes
+    if any(getattr(c, "directory", None) == directory for c in classes):
+        return
+    ours: list[Any] = [
+        _locator(caching.UserProvidedCacheLocator, directory),
+        _locator(caching.InTreeCacheLocator, directory),
+    ]
+    for cls in ours:
+        cls.directory = directory
+    classes[:0] = ours
+
+
+stamp_by_package(Path(__file__).parent)

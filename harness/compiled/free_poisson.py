@@ -1,12 +1,12 @@
 """Compiled gradient update on free space
-(:class:`harness.estimators.filters.poisson.FreePoisson`): the weighted Poisson operator
+(:class:`harness.estimators.filters.free_poisson.FreePoisson`): the weighted Poisson operator
 ``G^T diag(c) G`` matrix-free with the free-space gradient (the cell itself behind a
 closed face), its pinned band for a banded Cholesky factor, and the conjugate-gradient
 iteration preconditioned by that factor.
 
 Fields are whole grids, flattened; blocked cells carry 0 throughout (the gradient never
 reads them, so the operator's rows and columns there are 0 and the pinned band holds
-the unit vector). :meth:`~harness.estimators.filters.poisson.FreePoisson.solve_reference`
+the unit vector). :meth:`~harness.estimators.filters.free_poisson.FreePoisson.solve_reference`
 is the numpy statement that tests compare against: the same iteration on the free cells
 with the sparse product and a sparse LU of the same pinned operator.
 """
@@ -157,7 +157,7 @@ def free_poisson_pcg(
     (``b`` with zero mean on every component, 0 on blocked cells); returns ``(x,
     iterations, converged)``.
 
-    The iteration of :meth:`harness.estimators.filters.poisson.FreePoisson._pcg`,
+    The iteration of :meth:`harness.estimators.filters.free_poisson.FreePoisson._pcg`,
     statement for statement: converged when the residual off the components' constants
     is at most ``tol ||b||``; stops on ``r^T z <= 0`` or ``d^T A d <= 0``.
     """

@@ -26,7 +26,7 @@ of the map nor tunnels through one however long its step.
 
 The rule runs inside the compiled steps (:mod:`harness.compiled.agents`,
 :mod:`harness.compiled.robots`); their disk cache is keyed by this module's source too
-(:mod:`harness.compiled.caching`).
+(:func:`harness.compiled.stamp_by_package`).
 """
 
 from __future__ import annotations

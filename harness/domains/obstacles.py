@@ -45,7 +45,8 @@ class Obstacles(Domain):
 
     def resolve(self, grid: Grid) -> FreeSpace:
         """:meth:`Domain.resolve`, after each obstacle is checked to cover part of the
-        square ``[0, L]^2`` (an obstacle wholly outside it is a mistake, never ignored).
+        grid's rectangle with an area (an obstacle wholly outside it, or touching it only
+        on its edge, is a mistake, never ignored).
         """
         side = box(grid.x0, grid.y0, grid.x1, grid.y1)
         for i, ((cx, cy), r) in enumerate(self.discs):
@@ -105,4 +106,4 @@ def _polygon(i: int, polygon: Any) -> list[tuple[float, float]]:
     return out
 
 
-INSIDE = "an obstacle that covers part of the square [0, L]^2 (this one lies outside it)"
+INSIDE = "an obstacle that covers part of the grid's rectangle (this one lies outside it)"

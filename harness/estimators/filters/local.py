@@ -94,7 +94,7 @@ keeps its mass in the prediction); the band is :class:`~harness.estimators.filte
 (the masked Laplacian's modes below the cut, each component's constant among them, 0 on
 blocked cells), its correlations computed from those modes; the gradient is the
 free-space gradient and the gradient update's Poisson problem is solved by
-:class:`~harness.estimators.filters.poisson.FreePoisson` (conjugate gradients with a
+:class:`~harness.estimators.filters.free_poisson.FreePoisson` (conjugate gradients with a
 lagged banded Cholesky factor, the components' constants pinned) on every grid, then
 projected on the band (both states in one product with the band's modes). The
 auxiliary density ``x_g`` starts with the KDE's mass on each component (the gradient
@@ -120,7 +120,8 @@ from harness.estimators.filters.common import (
     FreeBand,
     MeasurementModel,
 )
-from harness.estimators.filters.poisson import BandPoisson, FreePoisson, WeightedPoisson
+from harness.estimators.filters.free_poisson import FreePoisson
+from harness.estimators.filters.poisson import BandPoisson, WeightedPoisson
 from harness.fokker_planck import FokkerPlanck, implicit_solve
 from harness.grid import Grid
 from harness.velocity import VelocityField
