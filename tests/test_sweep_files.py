@@ -330,3 +330,15 @@ def test_a_link_to_another_job_is_counted_once(tmp_path):
         (tmp_path / name / "job_status.json").write_text("{}")
     (tmp_path / "c").symlink_to(tmp_path / "b", target_is_directory=True)
     assert [p.name for p in job_dirs(tmp_path)] == ["a", "b"]
+
+
+def test_a_lock_is_still_taken_on_a_file_system_without_hard_links(tmp_path, monkeypatch):
+    from harness.runs import supervision
+
+    def no_links(src, dst, *args, **kwargs):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(supervision.os, "link", no_links)
+    with claim_job_dir(tmp_path):
+        assert supervision.read_lock(tmp_path / LOCK_FILE).pid == os.getpid()
+    assert not any(tmp_path.iterdir())

@@ -186,10 +186,29 @@ def _create_lock(lock: Path) -> bool:
             os.link(own, lock)
         except FileExistsError:
             return False
+        except OSError:  # a file system without hard links: created, then written
+            return _create_lock_in_place(lock)
         return True
     finally:
         with contextlib.suppress(OSError):
             own.unlink()
+
+
+def _create_lock_in_place(lock: Path) -> bool:
+    """Create ``lock`` exclusively and write this process into it (for a file system
+    without hard links; a claimer may then read it empty for an instant); False when
+    it exists.
+    """
+    try:
+        fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+        return False
+    try:
+        with contextlib.suppress(OSError):  # a full disk: the lock exists, unnamed
+            os.write(fd, Holder.of(os.getpid()).line().encode())
+    finally:
+        os.close(fd)
+    return True
 
 
 def _stale_or_holder(lock: Path) -> Holder | None:
