@@ -61,7 +61,7 @@ BENCH_FIGURES := build/bench/figures.jsonl
 
 # every benchmark runs and the page is written even when a target is missed; the exit
 # status says whether every benchmark exited 0
-bench: $(STAMP) ## Speed benchmarks, each figure against its target; writes docs/performance.md (about 6 min)
+bench: $(STAMP) ## Speed benchmarks, each figure against its target; writes docs/performance.md (about 15 min on 2 cores)
 	@mkdir -p $(dir $(BENCH_FIGURES)) && rm -f $(BENCH_FIGURES)
 	@status=0; \
 	for b in $(BENCHMARKS); do \
