@@ -54,7 +54,13 @@ from harness.compiled.binning import free_binning
 from harness.control.field import no_flux_into_obstacles
 from harness.control.kernels import kernel_field, log_mean
 from harness.domains.base import FreeSpace
-from harness.estimators.diffusion import FreeKernel, bin_targets, expected_binning, home_cells
+from harness.estimators.diffusion import (
+    FreeKernel,
+    bilinear_shares,
+    bin_targets,
+    expected_binning,
+    home_cells,
+)
 from harness.records import Command, ControlInput
 from harness.targets.densities import Target
 from harness.velocity import VelocityField
@@ -75,19 +81,7 @@ def gather(
     cell). Away from obstacles and walls it is the plain bilinear interpolant
     of the cell centres; the shares of a robot sum to 1. Returns ``(c, N)``.
     """
-    g = free.grid
-    tx = (positions[0] - g.x0) / g.dx
-    ty = (positions[1] - g.y0) / g.dy
-    ix = np.clip(np.floor(tx).astype(np.int64), 0, g.nx - 1)
-    iy = np.clip(np.floor(ty).astype(np.int64), 0, g.ny - 1)
-    ux, uy = tx - ix - 0.5, ty - iy - 0.5
-    fx, fy = np.minimum(np.abs(ux), 0.5), np.minimum(np.abs(uy), 0.5)
-    cell = iy * g.nx + ix
-    q = 2 * (uy >= 0) + (ux >= 0)
-    t = targets[cell, q]  # (N, 4)
-    shares = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
-    blocked = ~free.cells.ravel()[cell]
-    t[blocked] = home[cell[blocked]][:, None]
+    t, shares = bilinear_shares(free, targets, home, positions)
     return np.einsum("cnk,nk->cn", values[:, t], shares)
 
 

@@ -364,12 +364,16 @@ def home_cells(free: FreeSpace) -> np.ndarray:
     return np.ascontiguousarray((iy * g.nx + ix).ravel(), dtype=np.int64)
 
 
-def bin_reference(
+def bilinear_shares(
     free: FreeSpace, targets: np.ndarray, home: np.ndarray, positions: np.ndarray
-) -> np.ndarray:
-    """Numpy statement of :func:`harness.compiled.binning.free_binning`: the bilinear
-    shares of each robot (1 / N) on the cells :func:`bin_targets` gives, the whole 1 / N
-    on :func:`home_cells` for a robot in a blocked cell; ``(ny, nx)``, summing to 1.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each robot's four bilinear shares on free space: ``(cells, shares)``, both
+    ``(N, 4)``, the cells :func:`bin_targets` gives for the robot's quadrant of its cell
+    (:func:`home_cells`, four times, for a robot in a blocked cell) and the shares
+    ``(1 - fx)(1 - fy), fx (1 - fy), (1 - fx) fy, fx fy`` (``fx, fy`` its offsets from
+    the cell's centre, in cells, at most 1/2), summing to 1. The numpy statement of the
+    split :func:`harness.compiled.binning.free_binning` makes; the free-space KDE's
+    reference, the kernel laws' interpolation and the decentralised robots' kernels use it.
     """
     g = free.grid
     tx = (positions[0] - g.x0) / g.dx
@@ -384,6 +388,18 @@ def bin_reference(
     shares = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
     blocked = ~free.cells.ravel()[cell]
     t[blocked] = home[cell[blocked]][:, None]
+    return t, shares
+
+
+def bin_reference(
+    free: FreeSpace, targets: np.ndarray, home: np.ndarray, positions: np.ndarray
+) -> np.ndarray:
+    """Numpy statement of :func:`harness.compiled.binning.free_binning`: the bilinear
+    shares of each robot (1 / N) on the cells :func:`bin_targets` gives, the whole 1 / N
+    on :func:`home_cells` for a robot in a blocked cell; ``(ny, nx)``, summing to 1.
+    """
+    g = free.grid
+    t, shares = bilinear_shares(free, targets, home, positions)
     w = np.bincount(t.ravel(), shares.ravel(), g.size)
     return (w / positions.shape[1]).reshape(g.shape)
 

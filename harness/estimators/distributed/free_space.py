@@ -42,7 +42,7 @@ import numba
 import numpy as np
 
 from harness.domains.base import FreeSpace
-from harness.estimators.diffusion import FreeKernel
+from harness.estimators.diffusion import FreeKernel, bilinear_shares
 from harness.estimators.distributed.messages import KernelFactors
 from harness.estimators.distributed.mixing import Mixer
 from harness.estimators.filters.common import FreeBand
@@ -92,21 +92,8 @@ class FreeRobotKernels:
         blocked subcell counts whole at its nearest free one).
         """
         k = self.kernel
-        fg = k.fine.grid
         pos = np.asarray(positions, dtype=float)
-        tx = (pos[0] - fg.x0) * (fg.nx / (fg.x1 - fg.x0))
-        ty = (pos[1] - fg.y0) * (fg.ny / (fg.y1 - fg.y0))
-        ix = np.clip(np.floor(tx).astype(np.int64), 0, fg.nx - 1)
-        iy = np.clip(np.floor(ty).astype(np.int64), 0, fg.ny - 1)
-        ux, uy = tx - ix - 0.5, ty - iy - 0.5
-        fx, fy = np.minimum(np.abs(ux), 0.5), np.minimum(np.abs(uy), 0.5)
-        cell = iy * fg.nx + ix
-        q = 2 * (uy >= 0) + (ux >= 0)
-        targets = k.targets[cell, q]
-        shares = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
-        away = k.home[cell] != cell
-        targets[away] = k.home[cell[away]][:, None]
-        shares[away] = (1.0, 0.0, 0.0, 0.0)
+        targets, shares = bilinear_shares(k.fine, k.targets, k.home, pos)
         return np.ascontiguousarray(self.row[targets]), np.ascontiguousarray(shares)
 
     def __call__(self, positions: np.ndarray) -> KernelFactors:
