@@ -10,6 +10,7 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from harness.compiled.diffusion import chebyshev_heat
 from harness.estimators.diffusion import FreeKernel, HeatKernel, five_point_stencil, refine
 from harness.estimators.filters.common import FilterSettings, MeasurementModel
 from harness.estimators.filters.free_poisson import FreePoisson
@@ -49,6 +50,28 @@ def test_the_compiled_heat_kernel_equals_its_sparse_statement(name, r, rng):
     np.testing.assert_allclose(heat(cols), heat.reference(cols), rtol=0, atol=1e-13)
     # mass kept to round-off on the fast path as on the reference
     assert fast.sum() == pytest.approx(f.sum(), rel=1e-13)
+
+
+@pytest.mark.parametrize("n", [20, 30, 45])
+def test_a_float32_stencil_is_used_only_where_exact_and_gives_the_same_bits(n, rng):
+    free = refine(DOMAINS["rooms"].resolve(Grid.square(n)), 3)
+    heat = HeatKernel(free, 0.5 * H**2)
+    g = free.grid
+    wide = five_point_stencil(heat.matrix, g.nx)
+    assert heat.stencil is not None
+    np.testing.assert_array_equal(heat.stencil.astype(np.float64), wide)
+    f = np.where(free.cells, rng.random(g.shape), 0.0).ravel()
+    s, c = heat.scale, heat.coefficients
+    np.testing.assert_array_equal(heat(f), chebyshev_heat(f, wide, g.nx, s, c))
+
+
+def test_a_stencil_float32_cannot_hold_stays_float64():
+    free = refine(DOMAINS["rooms"].resolve(Grid(31, 29, 0.0, 1.0, 0.0, 0.93)), 3)
+    heat = HeatKernel(free, 0.5 * H**2)
+    assert heat.stencil is not None
+    if heat.stencil.dtype == np.float32:  # exact on this grid after all: nothing to test
+        pytest.skip("float32 holds this grid's weights")
+    assert heat.stencil.dtype == np.float64
 
 
 @pytest.mark.parametrize("name", DOMAINS)

@@ -29,7 +29,9 @@ def chebyshev_heat(
     Args:
         f: ``(M,)`` values on the grid's cells (row-major, ``nx`` per row).
         stencil: ``(5, M)`` the rows of ``A``: weights of the cell ``i - nx``, ``i - 1``,
-            ``i``, ``i + 1``, ``i + nx`` (0 where the face is closed or absent).
+            ``i``, ``i + 1``, ``i + nx`` (0 where the face is closed or absent); float64,
+            or float32 when that holds the weights exactly (each product is then the
+            same double-precision product, from half the bytes).
         nx: Cells per row.
         scale: ``2 / Lambda``.
         coefficients: ``c_0 .. c_K``.

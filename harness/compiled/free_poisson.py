@@ -98,6 +98,15 @@ def _off_constants(
     r: np.ndarray, labels: np.ndarray, counts: np.ndarray, out: np.ndarray
 ) -> None:  # pragma: no cover - compiled
     """``out = r`` less its mean on every component (``labels`` ``-1``: blocked, 0)."""
+    if counts.size == 1:  # one component: the same sums without the indexed store
+        total = 0.0
+        for i in range(r.size):
+            if labels[i] >= 0:
+                total += r[i]
+        mean = total / counts[0]
+        for i in range(r.size):
+            out[i] = r[i] - mean if labels[i] >= 0 else 0.0
+        return
     sums = np.zeros(counts.size)
     for i in range(r.size):
         if labels[i] >= 0:

@@ -58,7 +58,6 @@ from harness.estimators.diffusion import (
     FreeKernel,
     bilinear_shares,
     bin_targets,
-    expected_binning,
     home_cells,
 )
 from harness.records import Command, ControlInput
@@ -109,7 +108,6 @@ class FreeKernelSums:
         self.free = free
         self.kernel = k = FreeKernel(free, length)
         fine = k.fine
-        self._expected = expected_binning(k.targets, fine.cells)
         self._coarse = (bin_targets(free), home_cells(free))
         self.target_fine = self.spread(target.p)
         # each fine cell's flat index where free, its home (nearest free) cell elsewhere
@@ -136,10 +134,7 @@ class FreeKernelSums:
         the density ``p`` ``(ny, nx)`` taken constant on each control cell (blocked
         cells ignored).
         """
-        r = self.kernel.r
-        free = self.free
-        fine = np.kron(np.where(free.cells, p, 0.0), np.ones((r, r))).ravel()
-        return np.asarray(self._expected @ fine)
+        return self.kernel.spread(p)
 
     def binned(self, positions: np.ndarray) -> np.ndarray:
         """The robots' binned density ``(M_fine,)`` (1 / length^2) on the fine cells
