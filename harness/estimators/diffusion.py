@@ -293,6 +293,7 @@ class FreeKernel:
         self.targets = bin_targets(self.fine)
         self.home = home_cells(self.fine)
         self.read, self.read_gradient = readout(free, self.fine, self.r)
+        self._read_both = sp.vstack([self.read, self.read_gradient]).tocsr()  # one product
         fg = self.fine.grid
         self._bounds = (fg.x0, fg.x1, fg.y0, fg.y1)
         # spread's whole linear map from control cells to fine bins: each free cell's
@@ -327,10 +328,10 @@ class FreeKernel:
     def density(self, fine: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The diffused fine field ``fine`` ``(M_fine,)`` read at the control centres."""
         g = self.free.grid
-        u = np.maximum(self.heat(fine), 0.0)  # round-off of the series below 0
-        p = (self.read @ u).reshape(g.shape)
-        grad = (self.read_gradient @ u).reshape(2, *g.shape)
-        return p, grad
+        u = self.heat(fine)
+        np.maximum(u, 0.0, out=u)  # round-off of the series below 0
+        both = self._read_both @ u
+        return both[: g.size].reshape(g.shape), both[g.size :].reshape(2, *g.shape)
 
 
 def spread_matrix(free: FreeSpace, fine: FreeSpace, r: int) -> sp.csr_matrix:
