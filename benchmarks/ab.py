@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -82,12 +83,29 @@ class Comparison:
         return "no change detected"
 
 
+RANGE = re.compile(r"\s*\[[^\[\]]*\bto\b[^\[\]]*\]")
+"""A measured range in a figure's name (``rooms [286 to 416]``): it differs between runs."""
+
+
+def key(figure: Figure) -> tuple[str, str]:
+    """What pairs a figure of A with one of B: its name without measured ranges, and its
+    unit."""
+    return RANGE.sub("", figure.name).strip(), figure.unit
+
+
 def cost(figure: Figure, c: float) -> float | None:
     """The calibrated cost of ``figure`` measured at calibration ``c``: ``t / c`` for a
-    time, ``1 / (r c)`` for a rate; None for what does not scale with the host."""
-    e = calibration.exponent(figure.unit)
-    if e == 0 or not (math.isfinite(figure.value) and figure.value > 0):
+    time, ``1 / (r c)`` for a rate; a ratio of two speeds measured together (``x``,
+    already free of the host) as itself when its target is an upper bound and its
+    inverse when a lower one; None for what does not depend on speed (memory) and a
+    ratio without a target."""
+    if not (math.isfinite(figure.value) and figure.value > 0):
         return None
+    e = calibration.exponent(figure.unit)
+    if e == 0:
+        if figure.unit != "x" or figure.target is None:
+            return None
+        return figure.value if figure.relation == "<=" else 1.0 / figure.value
     return figure.value / c if e == 1 else 1.0 / (figure.value * c)
 
 
@@ -98,19 +116,19 @@ def compare(
     out: dict[tuple[str, str], list[float]] = {}
     order: list[tuple[str, str]] = []
     for (ca, fa), (cb, fb) in zip(a_runs, b_runs, strict=True):
-        b_by_name = {(f.name, f.unit): f for f in fb}
+        b_by_key = {key(f): f for f in fb}
         for f in fa:
-            key = (f.name, f.unit)
-            other = b_by_name.get(key)
+            k = key(f)
+            other = b_by_key.get(k)
             if f.unit == CALIBRATION_UNIT or other is None:
                 continue
             qa, qb = cost(f, ca), cost(other, cb)
             if qa is None or qb is None:
                 continue
-            if key not in out:
-                out[key] = []
-                order.append(key)
-            out[key].append(qa / qb)
+            if k not in out:
+                out[k] = []
+                order.append(k)
+            out[k].append(qa / qb)
     return [Comparison(name, unit, tuple(out[(name, unit)])) for name, unit in order]
 
 

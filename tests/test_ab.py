@@ -8,8 +8,10 @@ from benchmarks import ab
 from benchmarks.report import Figure
 
 
-def fig(name: str, value: float, unit: str) -> Figure:
-    return Figure("b", "python -m b", name, value, unit)
+def fig(
+    name: str, value: float, unit: str, target: float | None = None, relation: str = "<="
+) -> Figure:
+    return Figure("b", "python -m b", name, value, unit, target, relation)
 
 
 def test_costs_are_calibrated_times_and_inverse_calibrated_rates():
@@ -64,3 +66,22 @@ def test_an_unknown_commit_is_one_line(monkeypatch, capsys):
     monkeypatch.setattr("sys.argv", ["b", "--vs", "no-such-commit-xyz"])
     assert ab.cli(lambda argv: True, "benchmarks.robots") == 2
     assert "not a commit" in capsys.readouterr().err
+
+
+def test_figures_are_paired_by_name_without_their_measured_ranges():
+    a_runs = [(1.0, [fig("n = 30, rooms [286 to 416]", 300.0, "steps/s")])]
+    b_runs = [(1.0, [fig("n = 30, rooms [250 to 260]", 250.0, "steps/s")])]
+    (comp,) = ab.compare(a_runs, b_runs)
+    assert comp.name == "n = 30, rooms" and comp.ratio == pytest.approx(250.0 / 300.0)
+
+
+def test_a_ratio_of_speeds_is_compared_by_the_sense_of_its_target():
+    # a ratio of two speeds measured together needs no calibration; higher is better
+    # under a lower bound (rooms over square), lower is better under an upper bound
+    assert ab.cost(fig("rooms over square", 0.5, "x", 0.5, ">="), 2.0) == 2.0
+    assert ab.cost(fig("unicycles / agents", 1.8, "x", 1.3, "<="), 2.0) == 1.8
+    assert ab.cost(fig("shown only", 1.8, "x"), 2.0) is None
+    a_runs = [(1.0, [fig("rooms over square [0.4 to 0.6]", 0.55, "x", 0.5, ">=")])]
+    b_runs = [(3.0, [fig("rooms over square [0.3 to 0.5]", 0.44, "x", 0.5, ">=")])]
+    (comp,) = ab.compare(a_runs, b_runs)
+    assert comp.ratio == pytest.approx(0.44 / 0.55)  # A faster: q < 1
