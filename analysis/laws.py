@@ -80,21 +80,25 @@ def laws_n_figure(rows: list[dict[str, Any]], out: Path) -> list[Path]:
 
 
 def cell(a: dict[str, Any] | None, stat: str, fmt: str = "{:.3g}") -> str:
-    """A table cell: ``mean (low to high)`` of a point's statistic (its mean over the
-    seeds and 95 % interval), ``never`` for a settling time no seed reached, ``-`` for
-    no value; a settling time reached by some seeds says how many.
+    """A table cell: ``summary (low to high)`` of a point's statistic over the seeds
+    with its 95 % interval (:func:`analysis.rows.points`), ``never`` for a settling time
+    no seed reached and ``beyond the run`` for a median (or interval end) the seeds did
+    not reach, ``-`` for no value; a settling time reached by some seeds says how many.
     """
     if a is None:
         return "-"
     mean = a.get(f"{stat}_mean", math.nan)
     n = a.get(f"{stat}_n", 0)
     jobs = a.get("jobs", 0)
+    if isinstance(mean, float) and math.isinf(mean) and n:
+        return f"beyond the run, {n} of {jobs} seeds"
     if not (isinstance(mean, float) and math.isfinite(mean)):
         return "never" if stat == "settling_time" and jobs else "-"
     text = fmt.format(mean)
     low, high = a.get(f"{stat}_ci_low", math.nan), a.get(f"{stat}_ci_high", math.nan)
-    if math.isfinite(low) and math.isfinite(high):
-        text += f" ({fmt.format(low)} to {fmt.format(high)})"
+    if not (math.isnan(low) or math.isnan(high)):
+        ends = ["beyond the run" if math.isinf(v) else fmt.format(v) for v in (low, high)]
+        text += f" ({ends[0]} to {ends[1]})"
     if stat == "settling_time" and n < jobs:
         text += f", {n} of {jobs} seeds"
     return text

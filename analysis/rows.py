@@ -20,9 +20,10 @@ name. A log written before the record existed names each group by the class name
 ``_target_`` (``HeatControl``) instead, and the analysis says so in one warning.
 
 Rows that differ only in ``seed`` are one point: :func:`points` gives one row per point
-with, for every statistic ``s``, ``s_mean``, ``s_ci_low``, ``s_ci_high`` (95 %
-Student-t confidence interval of the mean over the seeds, :mod:`analysis.stats`) and
-``s_n``, and ``jobs``.
+with, for every statistic ``s``, ``s_mean``, ``s_ci_low``, ``s_ci_high`` (its summary
+over the seeds with the 95 % interval, by the rule of :mod:`analysis.stats` its kind
+asks for: a geometric mean, a Kaplan-Meier median or a mean) and ``s_n``, and
+``jobs``.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from analysis.configs import component, flatten, logged_config
 from analysis.declaration import declaration
 from analysis.load import LogError, LogWarning, RunLog, load_run
 from analysis.output import atomic_path
-from analysis.run_stats import STATS, SweepWarning, job_stats, number
+from analysis.run_stats import CENSORED, LOG_SCALE, STATS, SweepWarning, job_stats, number
 from analysis.stats import aggregate
 
 CONFIG_PREFIX = "cfg:"
@@ -296,13 +297,16 @@ def mixed_code(rows: list[dict[str, Any]]) -> dict[str, int]:
 
 
 def points(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per point (the varied config keys but ``seed``, and the law): mean and
-    95 % CI of every statistic over the seeds (:func:`analysis.stats.aggregate`).
+    """One row per point (the varied config keys but ``seed``, and the law): every
+    statistic over the seeds with its 95 % interval (:func:`analysis.stats.aggregate`):
+    geometric means for the positive ones (:data:`analysis.run_stats.LOG_SCALE`),
+    Kaplan-Meier medians for the censored times (:data:`analysis.run_stats.CENSORED`),
+    means for the rest.
     """
     keys = [k for k in varied(rows) if k != "seed"]
     flat = [{**{k: value(r, k) for k in keys}, LAW: r.get(LAW, ""), **r} for r in rows]
     done = [r for r in flat if r.get("state") == "completed"]
-    return aggregate(done, [*keys, LAW], [*STATS, "wall_s"])
+    return aggregate(done, [*keys, LAW], [*STATS, "wall_s"], log_scale=LOG_SCALE, censored=CENSORED)
 
 
 def points_with(rows: list[dict[str, Any]], keys: Iterable[str]) -> list[dict[str, Any]]:

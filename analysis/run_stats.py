@@ -98,6 +98,30 @@ STATS = (
 )
 """Every statistic of a run, in the order of the CSV's columns."""
 
+LOG_SCALE = frozenset(
+    {
+        "phi_tail_mean", "phi_tail_sup", "phi_sup", "phat_tail_mean", "eps_tail_mean",
+        "eps_g_tail_mean", "eps_sup", "eps_g_sup", "swarm_tail_mean", "est_swarm_tail_mean",
+        "limit_swarm_tail_mean", "limit_target_tail_mean", "swarm_w2_last",
+        "swarm_floor_mean", "swarm_floor_lo", "swarm_floor_hi", "swarm_w2_floor_mean",
+        "swarm_w2_floor_lo", "swarm_w2_floor_hi", "swarm_ratio", "swarm_w2_tail_mean",
+        "swarm_w2_ratio", "ms_per_step", "central_gap_tail_mean", "consensus_tail_mean",
+        "message_bytes_tail_mean", "disagreement_tail_mean", "effort_integral",
+        "speed_tail_mean", "tracking_tail_mean", "wall_s",
+    }
+)  # fmt: skip
+"""Statistics that are positive quantities (norms, distances, their ratios to the floors,
+effort, speeds, wall times): summarised over seeds by geometric means with intervals on
+the log scale (:func:`analysis.stats.geometric_ci`). The rest are means: the fitted and
+theoretical rates (signed), ``t_end``, counts that may be 0 (messages, bytes, degree,
+components), the algebraic connectivity (0 on a disconnected graph), the command's age
+(0 without a link) and the start region's fractions."""
+
+CENSORED = {"settling_time": "t_end", "start_half_time": "t_end"}
+"""Times to an event, ``inf`` for a run that ended first, each with the statistic holding
+the run's end: summarised by Kaplan-Meier medians with those runs censored at their end
+(:func:`analysis.stats.km_median`)."""
+
 
 def decay_rate(t: np.ndarray, phi: np.ndarray) -> float:
     """Least-squares slope of ``-log phi`` over the second half of the run (1 / s)."""

@@ -155,16 +155,32 @@ def fmt_number(value: float, fmt: str = ".3g", nan: str = "n/a") -> str:
     return format(value, fmt)
 
 
+BEYOND = "beyond the run"
+"""A Kaplan-Meier median (or interval end) the runs did not reach: more than half the
+seeds (or too many for the interval) ended before the event."""
+
+
 def with_ci(points: Points, row: Mapping[str, str], stat: str, fmt: str, nan: str) -> str:
-    """Mean of ``stat`` at ``row``, with its 95 % interval in brackets when it has one."""
+    """Summary of ``stat`` at ``row``, with its 95 % interval in brackets when it has
+    one; an infinite median of a censored time that some seeds reached, or an infinite
+    interval end, reads :data:`BEYOND`.
+    """
     mean = _number(row.get(points.column(stat)))
-    text = fmt_number(math.nan if mean is None else mean, fmt, nan)
+    reached = _number(row.get(f"{stat}_n"))
+    if mean is not None and math.isinf(mean) and reached is not None and reached > 0:
+        text = BEYOND
+    else:
+        text = fmt_number(math.nan if mean is None else mean, fmt, nan)
     low, high = _number(row.get(f"{stat}_ci_low")), _number(row.get(f"{stat}_ci_high"))
     if mean is None or math.isnan(mean) or low is None or high is None:
         return text
     if math.isnan(low) or math.isnan(high):
         return text
-    return f"{text} ({format(low, fmt)} to {format(high, fmt)})"
+
+    def end(v: float) -> str:
+        return BEYOND if math.isinf(v) else format(v, fmt)
+
+    return f"{text} ({end(low)} to {end(high)})"
 
 
 def parse_where(text: str) -> dict[str, Any]:

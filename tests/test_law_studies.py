@@ -64,11 +64,12 @@ def _row(law, n, seed, ratio, settle):
         "state": "completed",
         "swarm_ratio": ratio,
         "settling_time": settle,
+        "t_end": 25.0,
         "ms_per_step": 2.0,
     }
 
 
-def test_the_table_gives_means_intervals_and_unsettled_seeds():
+def test_the_table_gives_geometric_means_intervals_and_unsettled_seeds():
     rows = [
         _row("paper", 1024, 0, 1.0, 3.0),
         _row("paper", 1024, 1, 3.0, math.inf),
@@ -81,10 +82,15 @@ def test_the_table_gives_means_intervals_and_unsettled_seeds():
     assert laws == ["my_law", "paper"]  # alphabetical
     line = next(x for x in table.splitlines() if x.startswith("| paper"))
     cells = [c.strip() for c in line.split("|")[1:-1]]
-    # mean 2, 95 % t interval 2 +- 12.706 * sqrt(2) / sqrt(2)
-    assert cells[3].startswith("2 (-10.7 to 14.7)")
+    # ratios 1 and 3: geometric mean sqrt(3), 95 % t interval on the logs, above zero
+    logs = [0.0, math.log(3.0)]
+    half = 12.706 * (math.log(3.0) / math.sqrt(2)) / math.sqrt(2)
+    low, high = math.exp(sum(logs) / 2 - half), math.exp(sum(logs) / 2 + half)
+    assert cells[3] == f"{math.sqrt(3):.3g} ({low:.3g} to {high:.3g})"
     assert cells[4] == "2 (2 to 2)"  # no spread
-    assert cells[8] == "3.0, 1 of 2 seeds"
+    # settled at 3 s on one seed of two (the other censored at 25 s): S(3) = 1/2, the
+    # Kaplan-Meier median is 3 s, and no time bounds its interval from above
+    assert cells[8] == "3.0 (3.0 to beyond the run), 1 of 2 seeds"
     assert cells[9] == "500"
 
 

@@ -73,7 +73,8 @@ def test_robots_table_orders_plants_and_gives_intervals():
     assert [x.split("|")[2].strip() for x in lines] == [
         "ideal integrators", "double integrators", "dropout", "unicycles",
     ]  # fmt: skip
-    assert lines[0].split("|")[3].strip().startswith("1.5 (")  # mean of 1 and 2
+    # the geometric mean of 1 and 2, its interval on the log scale
+    assert lines[0].split("|")[3].strip().startswith(f"{2**0.5:.3g} (")
 
 
 def test_link_figure_from_a_tiny_sweep(tmp_path):
