@@ -45,9 +45,8 @@ functions; :class:`HeatKernel`). It is truncated after ``K`` terms with ``sum_{k
 <= tol`` (``tol = 1e-10``, far below the fine grid's ``O((s / h)^2)`` error) and the kept
 coefficients divided by their sum, so that the constants (eigenvalue 0, ``T_k(1) = 1``)
 are kept exactly: mass is conserved to round-off on every component and the 2-norm
-error is at most ``2 tol``. ``K`` grows like ``sqrt(2 z
-log(1 / tol))``: 35 products with ``A`` at the paper's settings (``z = 25.9``; 40 at
-``tol = 1e-13``).
+error is at most ``2 tol``. ``K`` grows like ``sqrt(2 z log(1 / tol))``: 35 products with
+``A`` at the paper's settings (``z = 25.9``; 40 at ``tol = 1e-13``).
 """
 
 from __future__ import annotations
