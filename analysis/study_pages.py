@@ -174,8 +174,8 @@ def with_ci(points: Points, row: Mapping[str, str], stat: str, fmt: str, nan: st
     low, high = _number(row.get(f"{stat}_ci_low")), _number(row.get(f"{stat}_ci_high"))
     if mean is None or math.isnan(mean) or low is None or high is None:
         return text
-    if math.isnan(low) or math.isnan(high):
-        return text
+    if math.isnan(low) or math.isnan(high) or (math.isinf(low) and math.isinf(high)):
+        return text  # no interval, or one wholly beyond the run: the summary alone
 
     def end(v: float) -> str:
         return BEYOND if math.isinf(v) else format(v, fmt)

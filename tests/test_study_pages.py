@@ -578,3 +578,15 @@ def test_nothing_is_written_when_any_study_asked_for_is_refused(tmp_path, capsys
     assert "second" in capsys.readouterr().err
     assert not good.page.exists() and not good.data.exists() and not good.image.exists()
     assert sp.main(args[:1] + args[2:]) == 0 and good.page.exists()
+
+
+def test_censored_times_read_never_beyond_the_run_or_their_interval():
+    row = {"law": "a", "t_mean": "inf", "t_ci_low": "inf", "t_ci_high": "inf", "t_n": "0"}
+    points = sp.Points([row])
+    assert sp.with_ci(points, row, "t", ".2g", "n/a") == "never"  # no seed reached it
+    some = {**row, "t_n": "1"}  # one of several seeds: the median lies beyond the run
+    assert sp.with_ci(points, some, "t", ".2g", "n/a") == "beyond the run"
+    half = {"law": "a", "t_mean": "3", "t_ci_low": "3", "t_ci_high": "inf", "t_n": "1"}
+    assert sp.with_ci(points, half, "t", ".2g", "n/a") == "3 (3 to beyond the run)"
+    finite = {"law": "a", "t_mean": "2", "t_ci_low": "1", "t_ci_high": "4", "t_n": "2"}
+    assert sp.with_ci(points, finite, "t", ".2g", "n/a") == "2 (1 to 4)"
