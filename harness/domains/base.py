@@ -86,15 +86,23 @@ class FreeSpace:
         cell of :meth:`harness.grid.Grid.gradient` (which this equals on the plain
         rectangle); 0 on blocked cells.
         """
-        f = np.asarray(f, dtype=float)
         g = self.grid
+        east, west, north, south = self.neighbours(np.asarray(f, dtype=float))
+        out = np.stack([(east - west) / (2 * g.dx), (north - south) / (2 * g.dy)])
+        return np.where(self.cells, out, 0.0)
+
+    def neighbours(self, f: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(east, west, north, south)``, each ``(ny, nx)``: the value of ``f`` ``(ny,
+        nx)`` at each cell's neighbour across that face, the cell's own where the face is
+        closed or is the rectangle's wall (the reflecting ghost cell). Given the cells'
+        flat indices, the indices of those neighbours.
+        """
         east, west, north, south = f.copy(), f.copy(), f.copy(), f.copy()
         east[:, :-1] = np.where(self.face_x, f[:, 1:], f[:, :-1])
         west[:, 1:] = np.where(self.face_x, f[:, :-1], f[:, 1:])
         north[:-1, :] = np.where(self.face_y, f[1:, :], f[:-1, :])
         south[1:, :] = np.where(self.face_y, f[:-1, :], f[1:, :])
-        out = np.stack([(east - west) / (2 * g.dx), (north - south) / (2 * g.dy)])
-        return np.where(self.cells, out, 0.0)
+        return east, west, north, south
 
     def restrict(self, p: np.ndarray) -> np.ndarray:
         """``p`` set to 0 on blocked cells and scaled to integrate to 1 over the free ones.

@@ -148,11 +148,7 @@ class FreeGradients:
         g = free.grid
         self.grid = g
         idx = np.arange(g.size).reshape(g.shape)
-        east, west, north, south = idx.copy(), idx.copy(), idx.copy(), idx.copy()
-        east[:, :-1] = np.where(free.face_x, idx[:, 1:], idx[:, :-1])
-        west[:, 1:] = np.where(free.face_x, idx[:, :-1], idx[:, 1:])
-        north[:-1, :] = np.where(free.face_y, idx[1:, :], idx[:-1, :])
-        south[1:, :] = np.where(free.face_y, idx[:-1, :], idx[1:, :])
+        east, west, north, south = free.neighbours(idx)
         on = free.cells
         self._cells, self._east, self._west, self._north, self._south = (
             np.ascontiguousarray(a[on], dtype=np.int64) for a in (idx, east, west, north, south)

@@ -235,11 +235,7 @@ def gradient_neighbours(free: FreeSpace) -> tuple[np.ndarray, np.ndarray]:
     """
     g = free.grid
     idx = np.arange(g.size).reshape(g.shape)
-    east, west, north, south = idx.copy(), idx.copy(), idx.copy(), idx.copy()
-    east[:, :-1] = np.where(free.face_x, idx[:, 1:], idx[:, :-1])
-    west[:, 1:] = np.where(free.face_x, idx[:, :-1], idx[:, 1:])
-    north[:-1, :] = np.where(free.face_y, idx[1:, :], idx[:-1, :])
-    south[1:, :] = np.where(free.face_y, idx[:-1, :], idx[1:, :])
+    east, west, north, south = free.neighbours(idx)
     blocked = ~free.cells
     for a in (east, west, north, south):
         a[blocked] = idx[blocked]
