@@ -34,6 +34,7 @@ from analysis.declaration import Study
 from analysis.output import write_text
 from analysis.plotting import errorbar, save_figure
 from analysis.rows import LAW, points_with, value
+from analysis.stats import BEYOND
 
 
 def by_law(rows: list[dict[str, Any]]) -> dict[str, list[dict[str, Any]]]:
@@ -91,13 +92,13 @@ def cell(a: dict[str, Any] | None, stat: str, fmt: str = "{:.3g}") -> str:
     n = a.get(f"{stat}_n", 0)
     jobs = a.get("jobs", 0)
     if isinstance(mean, float) and math.isinf(mean) and n:
-        return f"beyond the run, {n} of {jobs} seeds"
+        return f"{BEYOND}, {n} of {jobs} seeds"
     if not (isinstance(mean, float) and math.isfinite(mean)):
         return "never" if stat == "settling_time" and jobs else "-"
     text = fmt.format(mean)
     low, high = a.get(f"{stat}_ci_low", math.nan), a.get(f"{stat}_ci_high", math.nan)
     if not (math.isnan(low) or math.isnan(high)):
-        ends = ["beyond the run" if math.isinf(v) else fmt.format(v) for v in (low, high)]
+        ends = [BEYOND if math.isinf(v) else fmt.format(v) for v in (low, high)]
         text += f" ({ends[0]} to {ends[1]})"
     if stat == "settling_time" and n < jobs:
         text += f", {n} of {jobs} seeds"

@@ -116,6 +116,11 @@ def geometric_ci(values: Iterable[Any], level: float = 0.95) -> MeanCI:
     return MeanCI(math.exp(logs.mean), math.exp(logs.low), math.exp(logs.high), logs.n)
 
 
+BEYOND = "beyond the run"
+"""How a page or table reads a Kaplan-Meier median (or interval end) the runs did not
+reach: more than half the seeds (or too many for the interval) ended before the event."""
+
+
 @dataclass(frozen=True)
 class Censored:
     """A Kaplan-Meier median time and its interval.

@@ -76,6 +76,7 @@ import yaml
 
 from analysis.output import write_text
 from analysis.safe_yaml import ConfigRecordError, safe_config
+from analysis.stats import BEYOND
 from analysis.study_data import (
     ROOT,
     PageError,
@@ -155,15 +156,10 @@ def fmt_number(value: float, fmt: str = ".3g", nan: str = "n/a") -> str:
     return format(value, fmt)
 
 
-BEYOND = "beyond the run"
-"""A Kaplan-Meier median (or interval end) the runs did not reach: more than half the
-seeds (or too many for the interval) ended before the event."""
-
-
 def with_ci(points: Points, row: Mapping[str, str], stat: str, fmt: str, nan: str) -> str:
     """Summary of ``stat`` at ``row``, with its 95 % interval in brackets when it has
     one; an infinite median of a censored time that some seeds reached, or an infinite
-    interval end, reads :data:`BEYOND`.
+    interval end, reads :data:`analysis.stats.BEYOND`.
     """
     mean = _number(row.get(points.column(stat)))
     reached = _number(row.get(f"{stat}_n"))
