@@ -31,7 +31,7 @@ from __future__ import annotations
 import csv
 import os
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -136,39 +136,10 @@ def analyse(
     """
     rows, series, unnamed = [], {}, 0
     for job_dir in job_dirs(sweep_dir):
-        log_path = job_dir / LOG_FILE
-        row: dict[str, Any] = {"dir": job_dir.name}
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", LogWarning)
-                run = load_run(log_path, topics={"/metrics"})
-        except LogError as err:
-            row["state"] = f"unreadable: {err}"
-            rows.append(row)
-            continue
-        if run.recovery is not None:  # damaged or cut short: say so, whatever its status says
-            row["recovery"] = run.recovery
-            warnings.warn(f"{log_path}: {run.recovery}", SweepWarning, stacklevel=2)
-        if run.foreign is not None:  # values read as NaN: say so
-            warnings.warn(f"{log_path}: {run.foreign}", SweepWarning, stacklevel=2)
-        flat = flatten(logged_config(run))
-        row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
-        named, recorded = options(run, flat)
+        row, metrics, recorded = job_row(job_dir, tail)
         unnamed += not recorded
-        row[LAW] = named.pop(LAW_GROUP, "")
-        row.update({OPTION_PREFIX + group: option for group, option in named.items()})
-        row["code"] = code_of(run.metadata.get("provenance", {}))
-        theory = run.metadata.get("theory", {})
-        row["law_uses"] = theory.get("law_uses", "")
-        row["law_divides_by_density"] = theory.get("law_divides_by_density", "")
-        row["state"] = run.state if run.recovery is None else f"damaged ({run.state})"
-        row["wall_s"] = number(run.metadata.get("status", {}).get("wall_s"))
-        if "t" in run.metrics and len(run.metrics["t"]) > 2:
-            job_tail = tail if tail is not None else declaration(flat).tail
-            row.update(job_stats(run, job_tail))
-            steps = len(run.metrics["t"]) - 1
-            row["ms_per_step"] = 1e3 * row["wall_s"] / steps
-            series[job_dir.name] = MetricSeries(run.metrics)
+        if metrics is not None:
+            series[job_dir.name] = metrics
         rows.append(row)
     if unnamed:
         warnings.warn(
@@ -181,12 +152,54 @@ def analyse(
     return rows, series
 
 
+def job_row(
+    job_dir: Path, tail: float | None = None
+) -> tuple[dict[str, Any], MetricSeries | None, bool]:
+    """One job's row (as :func:`analyse` writes it), its metrics (None when the log
+    holds fewer than three steps or cannot be read) and whether the log recorded the
+    option of every config group.
+    """
+    log_path = job_dir / LOG_FILE
+    row: dict[str, Any] = {"dir": job_dir.name}
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", LogWarning)
+            run = load_run(log_path, topics={"/metrics"})
+    except LogError as err:
+        row["state"] = f"unreadable: {err}"
+        return row, None, True
+    if run.recovery is not None:  # damaged or cut short: say so, whatever its status says
+        row["recovery"] = run.recovery
+        warnings.warn(f"{log_path}: {run.recovery}", SweepWarning, stacklevel=3)
+    if run.foreign is not None:  # values read as NaN: say so
+        warnings.warn(f"{log_path}: {run.foreign}", SweepWarning, stacklevel=3)
+    flat = flatten(logged_config(run))
+    row.update({CONFIG_PREFIX + k: v for k, v in flat.items()})
+    named, recorded = options(run, flat)
+    row[LAW] = named.pop(LAW_GROUP, "")
+    row.update({OPTION_PREFIX + group: option for group, option in named.items()})
+    row["code"] = code_of(run.metadata.get("provenance", {}))
+    theory = run.metadata.get("theory", {})
+    row["law_uses"] = theory.get("law_uses", "")
+    row["law_divides_by_density"] = theory.get("law_divides_by_density", "")
+    row["state"] = run.state if run.recovery is None else f"damaged ({run.state})"
+    row["wall_s"] = number(run.metadata.get("status", {}).get("wall_s"))
+    metrics = None
+    if "t" in run.metrics and len(run.metrics["t"]) > 2:
+        job_tail = tail if tail is not None else declaration(flat).tail
+        row.update(job_stats(run, job_tail))
+        steps = len(run.metrics["t"]) - 1
+        row["ms_per_step"] = 1e3 * row["wall_s"] / steps
+        metrics = MetricSeries(run.metrics)
+    return row, metrics, recorded
+
+
 def config_of(row: dict[str, Any]) -> dict[str, Any]:
     """The row's flattened config, as the log records it."""
     return {k[len(CONFIG_PREFIX) :]: v for k, v in row.items() if k.startswith(CONFIG_PREFIX)}
 
 
-def value(row: dict[str, Any], key: str) -> Any:
+def value(row: Mapping[str, Any], key: str) -> Any:
     """The row's value at key ``key``: a config key, a group's option at the group's name
     (``plant``; a config key of the same name comes first), the law's at :data:`LAW`.
     """

@@ -41,6 +41,7 @@ __all__ = [
     "StepRecord",
     "compose",
     "load_run",
+    "options",
     "run",
     "simulate",
 ]
@@ -95,6 +96,32 @@ def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> 
             with open_dict(full):
                 full.hydra = {"runtime": {"choices": chosen}, "overrides": {"task": task}}
             return full
+    finally:
+        global_hydra = GlobalHydra.instance()
+        global_hydra.clear()
+        if outer is not None:
+            global_hydra.initialize(outer)
+
+
+def options(
+    group: str, overrides: Sequence[str] = (), config_name: str = "closed_loop"
+) -> list[str]:
+    """The options of config group ``group`` (``"control"``: every law), sorted, from
+    :data:`CONFIG_DIR` and any directory ``overrides`` add with ``hydra.searchpath``.
+    """
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    global_hydra = GlobalHydra.instance()
+    outer = global_hydra.hydra if global_hydra.is_initialized() else None
+    global_hydra.clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
+            loader = GlobalHydra.instance().config_loader()
+            found = loader.get_group_options(
+                group, config_name=config_name, overrides=list(overrides)
+            )
+            return sorted(found)
     finally:
         global_hydra = GlobalHydra.instance()
         global_hydra.clear()

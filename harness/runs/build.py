@@ -142,6 +142,11 @@ def _equal(a: Any, b: Any) -> bool:
         return False
 
 
+TUNABLE = "tunable"
+"""A component's declaration of what a benchmark may tune (its gains with their ranges,
+:mod:`harness.benchmark.space`): logged with the config, never passed to the class."""
+
+
 def _factory(plain: dict[str, Any]) -> Any:
     """``_target_`` with its parameters bound, from resolved values: Hydra's
     ``instantiate(..., _partial_=True)``, done directly when no parameter holds a nested
@@ -151,9 +156,10 @@ def _factory(plain: dict[str, Any]) -> Any:
     Raises:
         InstantiationException: for a ``_target_`` that cannot be loaded.
     """
-    params = {k: v for k, v in plain.items() if k != "_target_"}
+    params = {k: v for k, v in plain.items() if k not in ("_target_", TUNABLE)}
     if _nested(params):
-        return hydra.utils.instantiate(plain, _partial_=True, _convert_="all")
+        kept = {k: v for k, v in plain.items() if k != TUNABLE}
+        return hydra.utils.instantiate(kept, _partial_=True, _convert_="all")
     try:
         target = hydra.utils.get_object(str(plain["_target_"]))
     except Exception as err:

@@ -93,10 +93,12 @@ feature left off, such as a plant of one's own without localisation error); set 
 anything else, nothing reading them is refused like any unread key."""
 
 
-LOGGED_BLOCKS = ("analysis",)
+LOGGED_BLOCKS = ("analysis", "scenario", "point")
 """Optional blocks that nothing in a run reads and every run logs (in the ``config``
 record): ``analysis``, a study preset's declaration of its analysis, which
-:mod:`analysis.sweep` reads from the logs and checks. :func:`check_unread` accepts their
+:mod:`analysis.sweep` reads from the logs and checks; ``scenario``, a benchmark
+scenario's description (``conf/scenario/``); ``point``, what a benchmark's run is
+for (its role and trial, :mod:`harness.benchmark`). :func:`check_unread` accepts their
 keys; they are part of the config hash (:func:`harness.runs.identity.config_hash`), since
 they are logged."""
 
