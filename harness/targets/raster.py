@@ -284,9 +284,10 @@ class Ring(Raster):
 class Picture(Raster):
     """The density of a grey picture: mass where the picture is dark (``invert``) or
     light, plus a floor. The pixel weight is ``1 - g`` (``invert``) or ``g``, with ``g``
-    the pixel's grey level from 0 (black) to 1 (white) (:func:`harness.domains.mask.
-    read_grey`: luminance, 16-bit grey scaled, transparency over white); the image is
-    stretched over the grid's rectangle, row 0 at the top, as every :class:`Raster`.
+    the pixel's grey level from 0 (black) to 1 (white), read by
+    :func:`harness.domains.mask.read_grey` (luminance, 16-bit grey scaled, transparency
+    over white); the image is stretched over the grid's rectangle, row 0 at the top, as
+    every :class:`Raster`'s.
 
     Args:
         path: A PNG file of the user's (``~`` expanded; relative to the working
