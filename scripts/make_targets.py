@@ -45,7 +45,7 @@ def letters(text: str = "DL", size: int = SIZE) -> np.ndarray:
         va="center",
     )
     fig.canvas.draw()
-    rgba = np.asarray(fig.canvas.buffer_rgba())
+    rgba = np.asarray(fig.canvas.buffer_rgba())  # type: ignore[attr-defined]
     plt.close(fig)
     grey = rgba[..., :3].astype(float) @ np.array([0.299, 0.587, 0.114])
     drawn = np.clip(np.rint(grey), 0, 255).astype(np.uint8)
