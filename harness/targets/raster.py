@@ -78,10 +78,11 @@ class Raster:
         except (TypeError, ValueError):
             w = np.empty(0)
         require(w.ndim == 2 and w.size > 0, "weights", weights, "a 2-D array of pixel weights")
-        require(bool(np.isfinite(w).all()), "weights", "...", "finite pixel weights")
-        require(bool((w >= 0).all()), "weights", "...", "pixel weights >= 0")
+        given = f"<{w.shape[0]} x {w.shape[1]} pixels>"
+        require(bool(np.isfinite(w).all()), "weights", given, "finite pixel weights")
+        require(bool((w >= 0).all()), "weights", given, "pixel weights >= 0")
         total = float(w.sum())
-        require(total > 0, "weights", "...", "pixel weights not all zero (no mass to spread)")
+        require(total > 0, "weights", given, "pixel weights not all zero (no mass to spread)")
         w.setflags(write=False)
         self.weights = w
         """The pixel weights as given (read-only), shape ``(rows, cols)``."""
