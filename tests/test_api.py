@@ -290,6 +290,8 @@ def test_install_the_package_and_run_the_example_and_the_cli_elsewhere(tmp_path)
         assert Path(line).is_relative_to(site) and not Path(line).is_relative_to(ROOT), line
     assert (Path(site) / "harness" / "conf" / "closed_loop.yaml").is_file()
     assert not (Path(site) / "harness" / "conf").is_symlink()
+    for data in ("domains/data/warehouse.png", "targets/data/letters.png"):  # package data
+        assert (Path(site) / "harness" / data).is_file(), data
 
     shutil.copy(EXAMPLE, elsewhere / "explore.py")
     figure = elsewhere / "figure.png"

@@ -34,14 +34,14 @@ def test_the_page_has_one_module_and_one_yaml_per_component():
         "my_components/csv_metrics.py",
         "my_components/dropout.py",
         "my_components/ewma.py",
-        "my_components/ring.py",
+        "my_components/halo.py",
         "my_components/saturated.py",
         "my_conf/control/capped.yaml",
         "my_conf/control/saturated.yaml",
         "my_conf/estimator/ewma.yaml",
         "my_conf/observers/csv.yaml",
         "my_conf/plant/dropout.yaml",
-        "my_conf/target/ring.yaml",
+        "my_conf/target/halo.yaml",
     ]
 
 
@@ -52,7 +52,7 @@ def test_the_page_has_one_module_and_one_yaml_per_component():
         "control=capped",
         "estimator=ewma",
         "plant=dropout",
-        "target=ring",
+        "target=halo",
         "observers=[default,csv]",
     ],
 )

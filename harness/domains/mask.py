@@ -1,4 +1,9 @@
-"""``domain=mask``: free space read from a PNG image (white free, dark blocked)."""
+"""``domain=mask``: free space read from a PNG image (white free, dark blocked).
+
+:func:`read_grey` reads a PNG file's grey levels with every check a file from a user
+needs; ``target=picture`` (:class:`harness.targets.raster.Picture`) reads its image with
+it too.
+"""
 
 from __future__ import annotations
 
@@ -17,10 +22,10 @@ SHIPPED = Path(__file__).resolve().parent / "data"
 """The masks the package ships (``shipped: NAME`` reads ``SHIPPED / NAME.png``)."""
 
 MAX_BYTES = 16 << 20
-"""Largest mask file read (bytes)."""
+"""Largest image file read (bytes): a mask, or a picture of ``target=picture``."""
 
 MAX_PIXELS = MAX_SIDE * MAX_SIDE
-"""Largest mask image (pixels): each side at most :data:`harness.png.MAX_SIDE`, checked
+"""Largest image (pixels): each side at most :data:`harness.png.MAX_SIDE`, checked
 before its pixels are decoded (:func:`harness.png.png_problem`)."""
 
 
@@ -55,14 +60,9 @@ class Mask(Domain):
         super().__init__(resolution)
         self.threshold = number("threshold", threshold, 0.0, strict=True)
         require(self.threshold <= 1.0, "threshold", threshold, "a grey level in (0, 1]")
-        if path:
-            key, file = "path", Path(str(path)).expanduser()
-        else:
-            names = sorted(p.stem for p in SHIPPED.glob("*.png"))
-            require(shipped in names, "shipped", shipped, f"one of {names}, or a path")
-            key, file = "shipped", SHIPPED / f"{shipped}.png"
+        key, file = image_file(path, shipped, SHIPPED)
         self.source = str(file)
-        self.free = _read_mask(key, file, self.threshold)
+        self.free = read_grey(key, file) >= self.threshold
 
     def blocked(self, x: np.ndarray, y: np.ndarray, length: float) -> np.ndarray:
         """In a pixel darker than the threshold."""
@@ -72,9 +72,35 @@ class Mask(Domain):
         return ~self.free[row, col]
 
 
-def _read_mask(key: str, file: Path, threshold: float) -> np.ndarray:
-    """The free pixels of the image ``file`` (row 0 at the top), or a
-    :class:`ParameterError` naming ``key``.
+def image_file(path: str | None, shipped: str | None, folder: Path) -> tuple[str, Path]:
+    """The image a ``path`` / ``shipped`` pair of parameters names, with the key to name
+    when it is refused: the user's ``path`` (``~`` expanded; relative to the working
+    directory) when given, else ``folder / (shipped + ".png")``.
+
+    Raises:
+        ParameterError: naming ``shipped`` for a name none of the PNG files in
+            ``folder`` has.
+    """
+    if path:
+        return "path", Path(str(path)).expanduser()
+    names = sorted(p.stem for p in folder.glob("*.png"))
+    require(shipped in names, "shipped", shipped, f"one of {names}, or a path")
+    return "shipped", folder / f"{shipped}.png"
+
+
+def read_grey(key: str, file: Path) -> np.ndarray:
+    """The grey level of every pixel of the PNG image ``file``, 0 (black) to 1 (white),
+    shape ``(rows, cols)`` with row 0 at the top (:func:`grey_levels`).
+
+    Read without trusting the file: a regular file of at most :data:`MAX_BYTES` bytes
+    (:func:`harness.files.read_bytes`), a whole PNG a viewer can show
+    (:func:`harness.png.png_problem`, which also bounds each side by
+    :data:`harness.png.MAX_SIDE` before anything is decoded), at least 2 pixels a side,
+    then decoded by Pillow.
+
+    Raises:
+        ParameterError: naming ``key`` for a file that is missing, not a regular file,
+            too large, not a PNG image, damaged, or smaller than 2 pixels a side.
     """
     from PIL import Image, UnidentifiedImageError
 
@@ -94,7 +120,7 @@ def _read_mask(key: str, file: Path, threshold: float) -> np.ndarray:
                     str(file),
                     f"an image 2 to {MAX_SIDE} pixels a side ({width} x {height})",
                 )
-            grey = grey_levels(image)
+            return grey_levels(image)
     except ParameterError:
         raise
     except Image.DecompressionBombError:
@@ -103,7 +129,6 @@ def _read_mask(key: str, file: Path, threshold: float) -> np.ndarray:
         ) from None
     except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as err:
         raise ParameterError(key, str(file), f"a PNG image ({type(err).__name__})") from None
-    return grey >= threshold
 
 
 SIXTEEN_BIT_MODES = ("I;16", "I;16B", "I;16L", "I")
