@@ -6,7 +6,8 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
 .DEFAULT_GOAL := help
-.PHONY: help install test test-slow test-slurm lint format docs bench reproduce picture sweeps clean
+.PHONY: help install test test-slow test-slurm lint format docs bench reproduce picture sweeps clean \
+	benchmark benchmark-quick
 
 help: ## List the targets
 	@grep -hE '^[a-zA-Z_-]+:.*## ' $(MAKEFILE_LIST) | awk 'BEGIN {FS = ":.*## "}; {printf "  %-12s %s\n", $$1, $$2}'
@@ -129,6 +130,19 @@ sweep-distributed_frontier: $(STAMP)
 		estimator.radius=null estimator.k_nearest=6 estimator.rounds=10 estimator.band_limit=2.0
 	$(PY) -m analysis.sweep multirun/distributed_frontier --out figures/sweeps/distributed_frontier
 	$(PY) -m analysis.study_pages distributed_frontier
+
+# the benchmark's runs go through the Hydra launcher these overrides choose: joblib on
+# every core by default; e.g. LAUNCHER="hydra/launcher=submitit_slurm" on a SLURM cluster
+LAUNCHER ?=
+BENCHMARK_ARGS = $(foreach o,$(LAUNCHER),--launcher $(o))
+
+benchmark-quick: $(STAMP) ## Every law tuned on paper, ring and two_groups, small budget; writes docs/benchmark.md (about 25 min on 2 cores)
+	$(PY) -m experiments.benchmark --tier quick --out outputs/benchmark/quick \
+		--page docs/benchmark.md --command "make benchmark-quick" $(BENCHMARK_ARGS)
+
+benchmark: $(STAMP) ## Every law tuned on every scenario, verdicts on 8 fresh seeds (hours; LAUNCHER= for a cluster)
+	$(PY) -m experiments.benchmark --tier full --out outputs/benchmark/full \
+		--page docs/benchmark.md --command "make benchmark" $(BENCHMARK_ARGS)
 
 clean: ## Remove outputs, figures and the built documentation (keeps .venv)
 	rm -rf outputs multirun figures build/docs build/bench .pytest_cache .ruff_cache

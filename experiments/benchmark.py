@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--page", type=Path, help="write the leaderboard page here")
     parser.add_argument("--no-page", action="store_true", help="do not write the leaderboard")
+    parser.add_argument("--command", help="the command to name on the page (default: this one)")
     args = parser.parse_args(argv)
 
     from harness import api
@@ -75,7 +76,8 @@ def main(argv: list[str] | None = None) -> int:
         from analysis.leaderboard import main as leaderboard
 
         page = ["--page", str(args.page)] if args.page else []
-        return leaderboard([str(out), *page])
+        command = args.command or " ".join(["python -m experiments.benchmark", *sys.argv[1:]])
+        return leaderboard([str(out), *page, "--command", command])
     return 0
 
 
