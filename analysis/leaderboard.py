@@ -306,6 +306,61 @@ def scenario_table(scenario: Mapping[str, Any], base: str) -> str:
     return "\n".join(lines)
 
 
+def findings(data: Mapping[str, Any], alpha: float = 0.05) -> list[str]:
+    """One bullet per scenario, from the data alone: the law with the least
+    ``swarm_ratio`` at the matched budget and at its best point, and the laws that the
+    paired tests (Holm-adjusted, at level ``alpha``) find better or worse than the
+    budget law at the matched budget.
+    """
+    base = data["tier"]["budget_law"]
+    lines = []
+    for s in data["scenarios"]:
+        ran = [e for e in s["laws"] if not e.get("refused")]
+
+        def least(role: str, pool: list[dict[str, Any]] = ran) -> tuple[str, Any] | None:
+            have = [
+                (e["roles"][role]["error"][0], e["law"])
+                for e in pool
+                if role in e["roles"] and e["roles"][role]["error"][0] is not None
+            ]
+            return (min(have)[1], min(have)[0]) if have else None
+
+        matched, best = least("matched"), least("best")
+        better = [
+            e["law"]
+            for e in ran
+            if e.get("versus")
+            and _f(e["versus"].get("p_holm")) <= alpha
+            and _f(e["versus"]["ratio"]) < 1
+        ]
+        worse = [
+            e["law"]
+            for e in ran
+            if e.get("versus")
+            and _f(e["versus"].get("p_holm")) <= alpha
+            and _f(e["versus"]["ratio"]) > 1
+        ]
+        none = [e["law"] for e in ran if "matched" not in e["roles"]]
+        refused = [e["law"] for e in s["laws"] if e.get("refused")]
+        text = f"- `{s['name']}`: "
+        text += (
+            f"least swarm_l2 / floor at the matched effort: {matched[0]} ({_g(matched[1])}); "
+            if matched
+            else "no law within the matched effort; "
+        )
+        text += f"at any effort: {best[0]} ({_g(best[1])}). " if best else ""
+        text += (
+            f"Against {base} at the matched effort (paired, Holm, level {alpha:g}): "
+            f"better: {', '.join(better) or 'none'}; worse: {', '.join(worse) or 'none'}."
+        )
+        if none:
+            text += f" No point within the budget: {', '.join(none)}."
+        if refused:
+            text += f" Cannot run here: {', '.join(refused)}."
+        lines.append(text)
+    return lines
+
+
 def render(data: Mapping[str, Any], figure: str = "benchmark/fronts.png") -> str:
     """The leaderboard page from its data alone."""
     tier = data["tier"]
@@ -338,6 +393,7 @@ def render(data: Mapping[str, Any], figure: str = "benchmark/fronts.png") -> str
         f"![fronts]({figure})",
         "",
     ]
+    out += ["## What it shows", "", *findings(data), ""]
     for s in data["scenarios"]:
         out += [
             f"## `{s['name']}`: {s['description']}",

@@ -56,7 +56,7 @@ def test_a_bad_declaration_names_its_key(tunable, words):
     node = {"_target_": "x", "alpha": 0.003}
     if tunable is not None:
         node["tunable"] = tunable
-    with pytest.raises(TunableError, match="control.tunable") as err:
+    with pytest.raises(TunableError, match=r"control\.tunable") as err:
         gains(node)
     assert words in str(err.value)
 
@@ -91,7 +91,9 @@ def test_the_front_is_what_no_point_beats_by_brute_force():
         found = {c.tag for c in front(pts)}
         for c in pts:
             beaten = any(
-                o.error <= c.error and o.effort <= c.effort and (o.error, o.effort) != (c.error, c.effort)
+                o.error <= c.error
+                and o.effort <= c.effort
+                and (o.error, o.effort) != (c.error, c.effort)
                 for o in pts
             )
             assert (c.tag in found) == (not beaten)
