@@ -132,7 +132,7 @@ sweep-distributed_frontier: $(STAMP)
 	$(PY) -m analysis.study_pages distributed_frontier
 
 # the benchmark's runs go through the Hydra launcher these overrides choose: joblib on
-# every core by default; e.g. LAUNCHER="hydra/launcher=submitit_slurm" on a SLURM cluster
+# every core by default; e.g. LAUNCHER="hydra/launcher=slurm hydra.launcher.partition=P" on SLURM
 LAUNCHER ?=
 BENCHMARK_ARGS = $(foreach o,$(LAUNCHER),--launcher $(o))
 
@@ -140,7 +140,7 @@ benchmark-quick: $(STAMP) ## Every law tuned on paper, ring and two_groups, smal
 	$(PY) -m experiments.benchmark --tier quick --out outputs/benchmark/quick \
 		--page docs/benchmark.md --command "make benchmark-quick" $(BENCHMARK_ARGS)
 
-benchmark: $(STAMP) ## Every law tuned on every scenario, verdicts on 8 fresh seeds (hours; LAUNCHER= for a cluster)
+benchmark: $(STAMP) ## Every law tuned on every scenario, verdicts on 8 fresh seeds (hours; LAUNCHER=hydra/launcher=slurm on a cluster)
 	$(PY) -m experiments.benchmark --tier full --out outputs/benchmark/full \
 		--page docs/benchmark.md --command "make benchmark" $(BENCHMARK_ARGS)
 

@@ -50,8 +50,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--command", help="the command to name on the page (default: this one)")
     args = parser.parse_args(argv)
 
-    from harness import api
-    from harness.benchmark.driver import Benchmark, Settings
+    from harness.api import options
+    from harness.benchmark.driver import Benchmark, LaunchError, Settings
     from harness.benchmark.plan import PlanError, read_plan
 
     for d in args.searchpath:
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     extra = [f"hydra.searchpath=[{','.join(f'file://{d.resolve()}' for d in args.searchpath)}]"]
     extra = extra if args.searchpath else []
     try:
-        plan = read_plan(args.tier, api.options("scenario", extra), api.options("control", extra))
+        plan = read_plan(args.tier, options("scenario", extra), options("control", extra))
     except PlanError as err:
         print(f"invalid tier: {err}", file=sys.stderr)
         return 2
@@ -72,6 +72,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as err:
         print(f"interrupted ({err or 'Ctrl-C'}): run the same command to resume", file=sys.stderr)
         return 130
+    except (LaunchError, RuntimeError, OSError) as err:
+        print(f"benchmark stopped: {err}", file=sys.stderr)
+        return 1
     if not args.no_page:
         from analysis.leaderboard import main as leaderboard
 

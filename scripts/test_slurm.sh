@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# make test-slurm: a two-job `hydra/launcher=slurm` sweep of the smoke experiment on a
+# make test-slurm: a two-job `hydra/launcher=slurm` sweep of the smoke experiment, then a
+# reduced benchmark (python -m experiments.benchmark) through the same launcher, on a
 # private single-node SLURM cluster (Debian's slurm-wlm + munge) started for this test.
 #
 # Needs root (it installs slurm-wlm and munge with apt-get when missing and starts the
@@ -181,4 +182,44 @@ EOF
 DONE=$(scontrol --oneliner show job | grep -c 'JobState=COMPLETED' || true)
 ((DONE == 2)) || die "slurmctld reports $DONE completed jobs, expected 2"
 say "slurmctld: $DONE jobs COMPLETED on $HOST"
+
+# --- a reduced benchmark through the same launcher ------------------------------------------
+BENCH=$TMP/benchmark
+cat >"$TMP/tier.yaml" <<'TIER'
+scenarios: [paper]
+laws: [paper, langevin]
+trials: 2
+tuning_seeds: [0]
+verdict_seeds: [5, 6]
+budget_law: paper
+values:
+  grid: {n: 12}
+  agents: {n: 64}
+  sim: {t_final: 0.5}
+  log: {field_every: 1000, positions_every: 5, w2_every: 1000, floor_draws: 2}
+TIER
+say "benchmark: a reduced tier through hydra/launcher=slurm into $BENCH"
+timeout "$WAIT_S" "$PY" -m experiments.benchmark --tier "$TMP/tier.yaml" --out "$BENCH" \
+    --page "$BENCH/page/benchmark.md" --launcher hydra/launcher=slurm \
+    --launcher hydra.launcher.partition="$PARTITION" --launcher hydra.launcher.timeout_min=10 \
+    --launcher hydra.launcher.mem_gb=1 ||
+    die "the benchmark exited with status $?"
+"$PY" - "$BENCH" <<'CHECK'
+import json
+import sys
+from pathlib import Path
+
+bench = Path(sys.argv[1])
+verdicts = sorted(bench.glob("verdict/*/run.mcap"))
+assert verdicts, "no verdict logs"
+data = json.loads((bench / "page" / "benchmark" / "data.json").read_text())
+(scenario,) = data["scenarios"]
+for entry in scenario["laws"]:
+    roles = entry["roles"]
+    assert "default" in roles and roles["default"]["completed"] == 2, entry
+print(f"test-slurm: benchmark: {len(verdicts)} verdict runs; leaderboard {bench / 'page'}")
+CHECK
+DONE=$(scontrol --oneliner show job | grep -c 'JobState=COMPLETED' || true)
+((DONE > 2)) || die "slurmctld reports $DONE completed jobs after the benchmark"
+say "slurmctld: $DONE jobs COMPLETED on $HOST in all"
 say "PASSED"

@@ -41,11 +41,14 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("harness.runs",),
     ("analysis",),
     ("harness.api",),
+    ("harness.benchmark",),
     ("experiments",),
 )
 """The layers, lowest first, as ``docs/architecture.md`` draws them: a module imports
 only from its own layer or a lower one. ``harness.api`` sits above ``analysis``: it
-loads logs with :func:`analysis.load.load_run`; ``analysis`` reads only logs."""
+loads logs with :func:`analysis.load.load_run`; ``analysis`` reads only logs.
+``harness.benchmark`` composes configs through the API, launches multiruns and reads
+their logs back through ``analysis``."""
 
 MAX_LINES = 600
 """Longest module in ``harness/`` and ``analysis/``."""

@@ -50,6 +50,7 @@ from harness.benchmark.points import (
 )
 from harness.benchmark.space import Gain, TunableError, gains
 from harness.benchmark.tuning import (
+    DEFAULT,
     Candidate,
     Outcome,
     ask,
@@ -62,6 +63,11 @@ from harness.benchmark.tuning import (
     trial_budget,
 )
 from harness.runs.status import read_status, write_file
+
+
+class LaunchError(RuntimeError):
+    """A multirun that started none of its runs (a launcher that cannot start)."""
+
 
 Pair = tuple[str, str]
 """A scenario and a law."""
@@ -148,6 +154,12 @@ class Benchmark:
             raise
         if code in (130, -signal.SIGINT, -signal.SIGTERM):
             raise KeyboardInterrupt(f"the multirun in {sweep_dir} was interrupted")
+        started = any(job_dir(sweep_dir, n, s).is_dir() for n in names for s in seeds)
+        if code != 0 and not started:
+            raise LaunchError(
+                f"the multirun into {sweep_dir} exited with status {code} before any run "
+                "started (its output above says why; a launcher override?)"
+            )
 
     def _outcome(self, sweep_dir: Path, name: str, seeds: Sequence[int]) -> Outcome:
         from analysis.rows import LOG_FILE, job_row
@@ -172,7 +184,10 @@ class Benchmark:
 
     def check(self) -> list[Pair]:
         """The pairs that can run; the others kept in :attr:`refused` (step 1)."""
-        from harness import api
+        from hydra.errors import HydraException
+        from omegaconf.errors import OmegaConfBaseException
+
+        from harness.api import compose
         from harness.runs.build import build
         from harness.runs.checks import ConfigError
 
@@ -187,13 +202,13 @@ class Benchmark:
                     *flat_overrides(self.plan.values),
                 ]
                 try:
-                    cfg = api.compose(overrides)
+                    cfg = compose(overrides)
                     node = OmegaConf.to_container(cfg.control, resolve=True)
                     assert isinstance(node, dict)
                     self.gains[pair] = gains({str(k): v for k, v in node.items()}, "control")
                     build(cfg)
-                except (ConfigError, TunableError) as err:
-                    self.refused[pair] = str(err).splitlines()[0]
+                except (ConfigError, TunableError, HydraException, OmegaConfBaseException) as err:
+                    self.refused[pair] = (str(err).strip().splitlines() or [type(err).__name__])[0]
                     self._say(f"cannot run {scenario} / {law}: {self.refused[pair]}")
                     continue
                 pairs.append(pair)
@@ -219,8 +234,8 @@ class Benchmark:
             batch: list[tuple[Pair, Any, str]] = []
             if first:
                 for p in pairs:
-                    block = {"scenario": p[0], "law": p[1], "stage": "tune", "trial": "default"}
-                    batch.append((p, None, self._write_point(p, "default", {}, block)))
+                    block = {"scenario": p[0], "law": p[1], "stage": "tune", "trial": DEFAULT}
+                    batch.append((p, None, self._write_point(p, DEFAULT, {}, block)))
             for p, study in studies.items():
                 if done(study) >= budget[p]:
                     continue
@@ -363,7 +378,7 @@ def candidates_default(default: Outcome | None) -> list[Candidate]:
     """A law without gains: its default gains as its only candidate."""
     if default is None or default.values is None:
         return []
-    return [Candidate("default", {}, *default.values)]
+    return [Candidate(DEFAULT, {}, *default.values)]
 
 
 def _jsonable(value: Any) -> Any:

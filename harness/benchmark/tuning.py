@@ -52,6 +52,9 @@ from harness.benchmark.space import Gain, distributions, search_grid
 OBJECTIVES = ("swarm_ratio", "effort_integral")
 """The two objectives of a trial (module docstring), both minimised."""
 
+DEFAULT = "default"
+"""The tag of a law's default gains among its candidates and points."""
+
 RANDOM_START = 5
 """Trials of a several-gain law drawn at random before TPE models the front."""
 
@@ -197,7 +200,7 @@ def choose(candidates: Sequence[Candidate], budget: float | None) -> dict[str, C
         if within:
             out["matched"] = min(within, key=lambda c: (c.error, c.effort))
     for c in candidates:
-        if c.tag == "default":
+        if c.tag == DEFAULT:
             out["default"] = c
     return out
 
@@ -264,5 +267,5 @@ def candidates(study: Any, default: Outcome | None) -> list[Candidate]:
     for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)):
         out.append(Candidate(f"t{t.number:03d}", dict(t.params), t.values[0], t.values[1]))
     if default is not None and default.values is not None:
-        out.append(Candidate("default", {}, *default.values))
+        out.append(Candidate(DEFAULT, {}, *default.values))
     return out
