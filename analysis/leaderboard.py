@@ -186,6 +186,7 @@ def collect(out: Path) -> dict[str, Any]:
     return {
         "tier": tier,
         "machine": record.get("machine", {}),
+        "stage_s": record.get("stage_s", {}),
         "code": commits,
         "runs": len(tune_rows) + len(verdict_rows),
         "run_wall_s": wall,
@@ -361,6 +362,14 @@ def findings(data: Mapping[str, Any], alpha: float = 0.05) -> list[str]:
     return lines
 
 
+def _stages(stage_s: Mapping[str, float]) -> str:
+    """The benchmark's wall time per stage, as words (empty when unrecorded)."""
+    if not stage_s:
+        return ""
+    parts = [f"{name} {_g(seconds / 60, '.2g')} min" for name, seconds in stage_s.items()]
+    return "; wall time " + ", ".join(parts)
+
+
 def render(data: Mapping[str, Any], figure: str = "benchmark/fronts.png") -> str:
     """The leaderboard page from its data alone."""
     tier = data["tier"]
@@ -376,7 +385,9 @@ def render(data: Mapping[str, Any], figure: str = "benchmark/fronts.png") -> str
         f"tuning seeds {tier['tuning_seeds']}; verdicts on the fresh seeds "
         f"{tier['verdict_seeds']}, the same for every law. Matched effort: the effort of "
         f"`{tier['budget_law']}` at its default gains. {data['runs']} runs, "
-        f"{_g(data['run_wall_s'] / 3600, '.2g')} h of run time in all.",
+        f"{_g(data['run_wall_s'] / 3600, '.2g')} h of run time summed over the runs"
+        + _stages(data.get("stage_s", {}))
+        + ".",
         "",
         f"Made with `{data.get('command', 'python -m experiments.benchmark')}` on "
         f"{machine.get('cpu', 'an unrecorded CPU')} ({machine.get('cores', '?')} cores), "

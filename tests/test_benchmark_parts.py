@@ -222,3 +222,13 @@ def test_every_pair_of_scenario_and_law_either_builds_or_is_refused_in_one_line(
             refused.append((scenario, law))
     # the laws that cannot follow a moving target are the only refusals
     assert all(s == "moving" for s, _ in refused), refused
+
+
+def test_the_method_page_lists_every_scenario_and_shipped_tier():
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "benchmark-method.md").read_text()
+    for scenario in SCENARIOS:
+        assert f"| `{scenario}` |" in page, scenario
+    for tier in ("quick", "full"):
+        assert f"`{tier}`" in page

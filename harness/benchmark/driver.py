@@ -7,7 +7,9 @@
 * ``verdict/``: the chosen points on the fresh seeds;
 * ``tuning.db``: Optuna's SQLite storage of the trials;
 * ``benchmark.json``: the tier, the scenario and law pairs that cannot run (with the
-  one-line reason), the effort budget per scenario and each law's chosen points.
+  one-line reason), the effort budget per scenario, each law's chosen points, the
+  machine and the wall time (s) of the tuning and of the verdicts in the process that
+  finished them (a resumed benchmark counts only its last process).
 
 1. **Check.** Every scenario and law pair is composed and built (nothing run); a pair
    that cannot combine (a law that cannot follow a moving target, a plant a law cannot
@@ -118,6 +120,7 @@ class Benchmark:
         self.defaults: dict[Pair, Outcome] = {}
         self.chosen: dict[Pair, dict[str, Candidate]] = {}
         self.started = time.monotonic()
+        self.stage_s: dict[str, float] = {}  # wall time of each stage in this process (s)
 
     # -- helpers -----------------------------------------------------------------------
 
@@ -334,6 +337,7 @@ class Benchmark:
             ],
             "budgets": dict(budgets),
             "machine": machine(),
+            "stage_s": dict(self.stage_s),
             "chosen": [
                 {"scenario": s, "law": law, "role": role, **asdict(c)}
                 for (s, law), roles in sorted(self.chosen.items())
@@ -350,9 +354,12 @@ class Benchmark:
         self.settings.out.mkdir(parents=True, exist_ok=True)
         pairs = self.check()
         self.tune(pairs)
+        self.stage_s["tuning"] = time.monotonic() - self.started
         budgets = self.choose_points(pairs)
         path = self.record(budgets)
         self.verdicts(pairs)
+        self.stage_s["verdicts"] = time.monotonic() - self.started - self.stage_s["tuning"]
+        path = self.record(budgets)
         self._say(f"done: {path}")
         return path
 
