@@ -271,6 +271,7 @@ COPIES = [
     (["sim.dt=0.02", "plant.dt=0.04"], "plant.dt"),
     (["sim.dt=0.02", "plant=unicycles", "plant.dt=0.04", "link.period=0.04"], "plant.dt"),
     (["sim.dt=0.02", "estimator.dt=0.04"], "estimator.dt"),
+    (["sim.dt=0.02", "control=continuification", "control.dt=0.04"], "control.dt"),
 ]
 
 
@@ -292,7 +293,7 @@ def test_copies_equal_to_the_shared_keys_are_accepted(refusal):
 
 
 # -------------------------------------------------------- a periodic law's period
-@pytest.mark.parametrize("law", ["psg", "psg_feedback", "ot"])
+@pytest.mark.parametrize("law", ["psg", "psg_feedback", "dsmc", "ot"])
 def test_a_periodic_laws_period_is_a_whole_number_of_steps(refusal, law):
     for period in ("0.03", "1e-9", "0.05"):
         line = refusal([*TINY, "sim.dt=0.02", f"control={law}", f"control.period={period}"])
@@ -499,6 +500,7 @@ def test_every_combination_of_options_runs_or_is_refused_in_one_line(tmp_path, c
         (["estimator=distributed", "control=svgd"], "control='svgd'"),
         (["estimator=distributed", "plant=meanfield"], "plant='meanfield'"),
         (["target=moving", "control=ot"], "control='ot'"),
+        (["target=moving", "control=dsmc"], "control='dsmc'"),
     ],
 )
 def test_a_refused_combination_names_the_option_chosen_not_its_class(refusal, overrides, line):

@@ -11,6 +11,10 @@ One module per family of laws (``docs/laws.md`` gives each law's equation and so
   kernel, ``control=mmd`` and ``control=svgd``;
 * :mod:`~harness.control.guidance`: ``control=psg`` and ``control=psg_feedback``,
   Markov chains on the grid's cells;
+* :mod:`~harness.control.continuification`: ``control=continuification``, the density
+  error asked to decay at a rate, the flux from a Neumann Poisson solve;
+* :mod:`~harness.control.dsmc`: ``control=dsmc``, a state-dependent chain on the cells
+  whose expected distribution is a consensus of ``m / v``;
 * :mod:`~harness.control.assignment`: ``control=ot``, optimal-transport deployment;
 * :mod:`~harness.control.waypoints`: robots that head for goal points, shared by the
   last two;
