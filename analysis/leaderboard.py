@@ -262,7 +262,8 @@ def _settling(role: Mapping[str, Any] | None) -> str:
 
 
 def _gain_text(gains: Mapping[str, Any]) -> str:
-    return ", ".join(f"{k} {_g(v, '.3g')}" for k, v in gains.items()) or "none"
+    """The gains in words (a gain left at null, such as no speed cap, reads "none")."""
+    return ", ".join(f"{k} {'none' if v is None else _g(v)}" for k, v in gains.items()) or "none"
 
 
 def _versus_text(v: Mapping[str, Any] | None) -> str:
@@ -402,6 +403,11 @@ def render(data: Mapping[str, Any], figure: str = "benchmark/fronts.png") -> str
         "never settled counted at the run's end.",
         "",
         f"![fronts]({figure})",
+        "",
+        "Per scenario, error against effort (both on log axes): small dots every tuning "
+        "point (tuning seeds), lines each law's front among them; large circles each law's "
+        "best point and squares its point at the matched effort, re-run on the fresh seeds "
+        "with 95 % intervals; the dotted line the effort budget.",
         "",
     ]
     out += ["## What it shows", "", *findings(data), ""]

@@ -186,7 +186,7 @@ class Benchmark:
     # -- steps ---------------------------------------------------------------------------
 
     def check(self) -> list[Pair]:
-        """The pairs that can run; the others kept in :attr:`refused` (step 1)."""
+        """The pairs that can run; the others kept in ``refused`` (step 1)."""
         from hydra.errors import HydraException
         from omegaconf.errors import OmegaConfBaseException
 
