@@ -136,7 +136,7 @@ sweep-distributed_frontier: $(STAMP)
 LAUNCHER ?=
 BENCHMARK_ARGS = $(foreach o,$(LAUNCHER),--launcher $(o))
 
-benchmark-quick: $(STAMP) ## Every law tuned on paper, ring and two_groups, small budget; writes docs/benchmark.md (about 25 min on 2 cores)
+benchmark-quick: $(STAMP) ## Every law tuned on paper, ring and two_groups, small budget; writes docs/benchmark.md (about 35 min on 2 cores)
 	$(PY) -m experiments.benchmark --tier quick --out outputs/benchmark/quick \
 		--page docs/benchmark.md --command "make benchmark-quick" $(BENCHMARK_ARGS)
 

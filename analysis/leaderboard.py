@@ -392,7 +392,8 @@ def render(data: Mapping[str, Any], figure: str = "benchmark/fronts.png") -> str
         "",
         f"Made with `{data.get('command', 'python -m experiments.benchmark')}` on "
         f"{machine.get('cpu', 'an unrecorded CPU')} ({machine.get('cores', '?')} cores), "
-        f"code {', '.join(c[:12] for c in data['code']) or 'unrecorded'}.",
+        "code SHA-256 (harness, analysis, experiments, conf) "
+        f"{', '.join(c[:12] for c in data['code']) or 'unrecorded'}.",
         "",
         "How to read it (definitions in [the metrics page](metrics.md) and "
         "[the statistics](benchmark-method.md)): `swarm_l2 / floor` is the tail mean of the "

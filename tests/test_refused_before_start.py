@@ -371,11 +371,12 @@ def test_the_kernel_laws_memory_estimate_bounds_what_they_allocate(compose, law)
 
     from harness.protocols import memory_estimate
     from harness.records import ControlInput
+    from harness.runs.build import TUNABLE
 
     cfg = compose([*TINY, "grid.n=12", f"control={law}", "control.bin_factor=24"])
     parts = build(compose([*TINY, "grid.n=12", f"control={law}"]))
     cls = type(parts.control)
-    params = {k: v for k, v in dict(cfg.control).items() if k != "_target_"}
+    params = {k: v for k, v in dict(cfg.control).items() if k not in ("_target_", TUNABLE)}
     positions = np.random.default_rng(0).uniform(0.1, 0.9, (2, 40))
     tracemalloc.start()
     law_ = cls(target=parts.target, **params)
