@@ -35,29 +35,12 @@ LARGE = ("mmd", "svgd")
 
 
 def laws(overrides: Sequence[str] = ()) -> list[str]:
-    """The options of config group ``control`` as Hydra's config loader lists them
-    (alphabetical), with the search path ``overrides`` give
-    (``hydra.searchpath=[file:///abs/my_conf]``).
+    """The options of config group ``control`` (alphabetical), with the search path
+    ``overrides`` give (``hydra.searchpath=[file:///abs/my_conf]``).
     """
-    from hydra import initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
+    from harness.api import options
 
-    from harness.api import CONFIG_DIR
-
-    global_hydra = GlobalHydra.instance()
-    outer = global_hydra.hydra if global_hydra.is_initialized() else None
-    global_hydra.clear()
-    try:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            loader = GlobalHydra.instance().config_loader()
-            return loader.get_group_options(
-                "control", config_name="closed_loop", overrides=list(overrides)
-            )
-    finally:
-        global_hydra = GlobalHydra.instance()
-        global_hydra.clear()
-        if outer is not None:
-            global_hydra.initialize(outer)
+    return options("control", overrides)
 
 
 def loop_rate(

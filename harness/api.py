@@ -20,6 +20,7 @@ configs, as on the command line (``docs/extending.md``).
 
 from __future__ import annotations
 
+import contextlib
 import copy as copy_
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -82,6 +83,21 @@ def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> 
             override that does not compose (an unknown key or option, a bad value).
     """
     from hydra import compose as hydra_compose
+
+    with _configs():
+        full = hydra_compose(config_name, overrides=list(overrides), return_hydra_config=True)
+        chosen = OmegaConf.to_container(full.hydra.runtime.choices, resolve=False)
+        task = OmegaConf.to_container(full.hydra.overrides.task, resolve=False)
+        with open_dict(full):
+            full.hydra = {"runtime": {"choices": chosen}, "overrides": {"task": task}}
+        return full
+
+
+@contextlib.contextmanager
+def _configs() -> Iterator[None]:
+    """Hydra initialised on :data:`CONFIG_DIR` for the block, any global Hydra state
+    (a running app's) set aside and restored after it.
+    """
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -90,12 +106,7 @@ def compose(overrides: Sequence[str] = (), config_name: str = "closed_loop") -> 
     global_hydra.clear()
     try:
         with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            full = hydra_compose(config_name, overrides=list(overrides), return_hydra_config=True)
-            chosen = OmegaConf.to_container(full.hydra.runtime.choices, resolve=False)
-            task = OmegaConf.to_container(full.hydra.overrides.task, resolve=False)
-            with open_dict(full):
-                full.hydra = {"runtime": {"choices": chosen}, "overrides": {"task": task}}
-            return full
+            yield
     finally:
         global_hydra = GlobalHydra.instance()
         global_hydra.clear()
@@ -109,24 +120,12 @@ def options(
     """The options of config group ``group`` (``"control"``: every law), sorted, from
     :data:`CONFIG_DIR` and any directory ``overrides`` add with ``hydra.searchpath``.
     """
-    from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    global_hydra = GlobalHydra.instance()
-    outer = global_hydra.hydra if global_hydra.is_initialized() else None
-    global_hydra.clear()
-    try:
-        with initialize_config_dir(config_dir=str(CONFIG_DIR), version_base="1.3"):
-            loader = GlobalHydra.instance().config_loader()
-            found = loader.get_group_options(
-                group, config_name=config_name, overrides=list(overrides)
-            )
-            return sorted(found)
-    finally:
-        global_hydra = GlobalHydra.instance()
-        global_hydra.clear()
-        if outer is not None:
-            global_hydra.initialize(outer)
+    with _configs():
+        loader = GlobalHydra.instance().config_loader()
+        found = loader.get_group_options(group, config_name=config_name, overrides=list(overrides))
+        return sorted(found)
 
 
 def _config(config: DictConfig | Sequence[str]) -> DictConfig:
