@@ -32,7 +32,7 @@ from harness.control.field import FieldLaw
 from harness.control.paper import feedback_target
 from harness.parameters import number, require, speed_cap
 from harness.targets.densities import Target
-from harness.targets.feedforward import NeumannPoisson, face_gradient, sg_velocity
+from harness.targets.feedforward import NeumannPoisson, carrying_velocity, face_gradient
 from harness.velocity import VelocityField
 
 
@@ -75,7 +75,7 @@ def continuification_law(
     ``sigma`` is ``J`` (:func:`harness.targets.feedforward.sg_velocity`). The noise
     compensation ``sigma grad p_hat`` is then inside the flux: where ``p_hat >= c`` the
     Fokker-Planck operator gives ``A(u) p_hat = -div_h J = -K (p_hat - p_*) + d_t p_*``
-    to round-off (``tests/test_continuification.py``). The centres, which robots
+    to round-off (``tests/test_new_laws.py``). The centres, which robots
     interpolate, carry ``(grad phi + sigma q_hat) / max(p_hat, c)`` with ``grad phi``
     the mean of the two neighbouring face fluxes (zero on the walls).
 
@@ -118,25 +118,10 @@ def continuification_law(
     if rate is not None:
         source = source - rate
     phi = solver.solve(source)
-    jx, jy = face_gradient(g, phi)
     p = np.maximum(p_hat, density_floor)
-    n_x = jx.size
-    h = np.concatenate([np.full(n_x, g.dx), np.full(jy.size, g.dy)])
-    # u with F_SG(u; p_L, p_R) = grad_h phi on every face
-    u = sg_velocity(
-        np.concatenate([jx.ravel(), jy.ravel()]),
-        np.concatenate([p[:, :-1].ravel(), p[:-1, :].ravel()]),
-        np.concatenate([p[:, 1:].ravel(), p[1:, :].ravel()]),
-        sigma,
-        h,
-    )
-    flux = np.zeros((2, *g.shape))  # grad phi at the centres: mean of the two faces
-    flux[0, :, :-1] += 0.5 * jx
-    flux[0, :, 1:] += 0.5 * jx
-    flux[1, :-1, :] += 0.5 * jy
-    flux[1, 1:, :] += 0.5 * jy
-    centres = (flux + sigma * q_hat) / p
-    return VelocityField(centres, u[:n_x].reshape(jx.shape), u[n_x:].reshape(jy.shape))
+    # u with F_SG(u; p_L, p_R) = grad_h phi on every face; grad phi at the centres
+    u_x, u_y, flux = carrying_velocity(g, *face_gradient(g, phi), p, sigma)
+    return VelocityField((flux + sigma * q_hat) / p, u_x, u_y)
 
 
 class ContinuificationControl(FieldLaw):

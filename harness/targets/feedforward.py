@@ -242,11 +242,31 @@ def feedforward(
     solver = NeumannPoisson(g) if poisson is None else poisson
     # Laplacian phi = -d_t p_*
     phi = solver.solve(-rate)
-    jx, jy = face_gradient(g, phi)
-    p = target.p
-    # u with F_SG(u) = grad phi on each face (both directions in one solve)
+    u_x, u_y, flux = carrying_velocity(g, *face_gradient(g, phi), target.p, sigma)
+    # w = u - sigma grad log p_* on the faces
+    face_x = u_x - sigma * np.diff(target.log_p, axis=1) / g.dx
+    face_y = u_y - sigma * np.diff(target.log_p, axis=0) / g.dy
+    # centres: grad phi / p_*
+    return VelocityField(flux / target.p, face_x, face_y)
+
+
+def carrying_velocity(
+    grid: Grid, jx: np.ndarray, jy: np.ndarray, p: np.ndarray, sigma: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The face velocities that carry the face fluxes ``J = (jx, jy)`` (1 / (length s))
+    on the density ``p``, and ``J`` at the cell centres.
+
+    On every interior face ``u`` solves ``F_SG(u; p_L, p_R) = J`` with the noise
+    ``sigma`` (:func:`sg_velocity`, both directions in one solve), so the plant's
+    Scharfetter-Gummel divergence of ``p`` under ``u`` is ``div_h J``. At a centre ``J``
+    is the mean of its two faces along each axis (a wall face counts as 0).
+
+    Returns:
+        ``u_x`` ``(ny, nx - 1)`` and ``u_y`` ``(ny - 1, nx)`` (length / s), and the
+        centre flux ``(2, ny, nx)`` (1 / (length s)).
+    """
     nx_faces = jx.size
-    h = np.concatenate([np.full(nx_faces, g.dx), np.full(jy.size, g.dy)])
+    h = np.concatenate([np.full(nx_faces, grid.dx), np.full(jy.size, grid.dy)])
     u = sg_velocity(
         np.concatenate([jx.ravel(), jy.ravel()]),
         np.concatenate([p[:, :-1].ravel(), p[:-1, :].ravel()]),
@@ -254,13 +274,9 @@ def feedforward(
         sigma,
         h,
     )
-    # w = u - sigma grad log p_* on the faces
-    face_x = u[:nx_faces].reshape(jx.shape) - sigma * np.diff(target.log_p, axis=1) / g.dx
-    face_y = u[nx_faces:].reshape(jy.shape) - sigma * np.diff(target.log_p, axis=0) / g.dy
-    # centres: grad phi / p_*, grad phi the mean of the two faces (zero on the walls)
-    centres = np.zeros((2, *g.shape))
+    centres = np.zeros((2, *grid.shape))
     centres[0, :, :-1] += 0.5 * jx
     centres[0, :, 1:] += 0.5 * jx
     centres[1, :-1, :] += 0.5 * jy
     centres[1, 1:, :] += 0.5 * jy
-    return VelocityField(centres / p, face_x, face_y)
+    return u[:nx_faces].reshape(jx.shape), u[nx_faces:].reshape(jy.shape), centres
