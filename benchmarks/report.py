@@ -271,16 +271,11 @@ def machine(date: datetime.datetime | None = None) -> dict[str, str]:
     import numba
     import numpy
 
-    cpu = platform.processor() or platform.machine()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        for text in cpuinfo.read_text(errors="replace").splitlines():
-            if text.startswith("model name"):
-                cpu = text.split(":", 1)[1].strip()
-                break
+    from harness.runs.identity import cpu_model
+
     when = date or datetime.datetime.now(datetime.UTC)
     return {
-        "CPU": cpu,
+        "CPU": cpu_model(),
         "cores": str(os.cpu_count()),
         "Python": platform.python_version(),
         "numpy": numpy.__version__,

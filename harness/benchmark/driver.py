@@ -365,20 +365,12 @@ class Benchmark:
 
 
 def machine() -> dict[str, Any]:
-    """The machine the benchmark ran on: its CPU model (``/proc/cpuinfo``, else
-    :func:`platform.processor`), its logical cores and its system.
-    """
+    """The machine the benchmark ran on: its CPU model, logical cores and system."""
     import platform
 
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu or "unknown", "cores": os.cpu_count(), "system": platform.platform()}
+    from harness.runs.identity import cpu_model
+
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "system": platform.platform()}
 
 
 def candidates_default(default: Outcome | None) -> list[Candidate]:

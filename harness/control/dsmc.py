@@ -143,7 +143,7 @@ class ConsensusGuidance(FeedbackGuidance):
       point drawn uniformly in its new cell, one that stays holds
       (:class:`harness.control.guidance.FeedbackGuidance`).
 
-    Properties (``tests/test_dsmc.py``): each column is nonnegative and sums to 1;
+    Properties (``tests/test_new_laws.py``): each column is nonnegative and sums to 1;
     ``M = I`` at the target (the robots stop); with exact masses the expected
     distribution follows the linear consensus of :func:`consensus_rate`, converging to
     ``v`` from every start at the rate ``rho`` per period in ``||r - 1||_V``, a bound on

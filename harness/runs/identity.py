@@ -78,6 +78,19 @@ class RunIdentity:
         }
 
 
+def cpu_model() -> str:
+    """The CPU's model name (the first ``model name`` of ``/proc/cpuinfo``, else
+    :func:`platform.processor` or the machine type).
+    """
+    cpu = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for text in cpuinfo.read_text(errors="replace").splitlines():
+            if text.startswith("model name"):
+                return text.split(":", 1)[1].strip()
+    return cpu
+
+
 def choices(cfg: DictConfig) -> dict[str, str]:
     """Hydra's choices: the option chosen in each config group of the project
     (``{"plant": "agents", "control": "paper", "experiment": "smoke", ...}``; Hydra's own
