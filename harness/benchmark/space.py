@@ -120,13 +120,3 @@ def distributions(declared: Sequence[Gain]) -> dict[str, Any]:
             assert g.low is not None and g.high is not None
             out[g.name] = FloatDistribution(g.low, g.high, log=g.log)
     return out
-
-
-def search_grid(declared: Sequence[Gain], points: int) -> dict[str, list[Any]]:
-    """The grid a law with one gain is tuned on: ``points`` values of it (its declared
-    values when it has a list).
-    """
-    if len(declared) != 1:
-        raise ValueError(f"a grid is for a law with one gain, not {len(declared)}")
-    g = declared[0]
-    return {g.name: g.grid(points)}

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.benchmark.space import Gain, distributions, search_grid
+from harness.benchmark.space import Gain, distributions
 
 OBJECTIVES = ("swarm_ratio", "effort_integral")
 """The two objectives of a trial (module docstring), both minimised."""
@@ -74,7 +74,7 @@ def grid_values(gain: Gain, trials: int) -> list[Any]:
     ``trials`` of a list, evenly picked with both ends kept.
     """
     if gain.values is None:
-        return search_grid([gain], trials)[gain.name]
+        return gain.grid(trials)
     values = list(gain.values)
     if len(values) <= trials:
         return values
